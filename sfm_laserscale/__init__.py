@@ -1,0 +1,3 @@
+"""sfm-laserscale: metric scale for monocular SfM models from laser scaler images."""
+
+__version__ = "0.1.0"

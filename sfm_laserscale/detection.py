@@ -1,0 +1,707 @@
+"""Laser spots in one image: sub-pixel centres (COLMAP pixel convention) assigned to lasers.
+
+Pipeline (per laser colour needed by the rig):
+
+1. colour-difference response, e.g. ``R - max(G, B)`` for red (blue-green casts and white light
+   give <= 0). Where the laser channel is clipped (the white, saturated core of a bright spot)
+   the response is filled with the strongest colour difference found in a ring around the
+   clipped region, so a saturated spot with a coloured halo responds and a white specular
+   highlight (no coloured halo) does not;
+2. multi-scale, scale-normalised difference-of-Gaussians on that response; local maxima above a
+   noise-relative threshold are the *candidates*;
+3. each candidate is measured at full resolution (half-maximum radius, roundness, contrast and
+   SNR against a background annulus, compactness = the annulus must be dark) and refined to
+   sub-pixel precision (Gaussian-windowed, background-subtracted intensity centroid by default,
+   or a 2D Gaussian fit);
+4. geometry: each calibrated beam between ``min_range_m`` and ``max_range_m`` is projected with
+   the camera model to an image polyline; a candidate is admissible for a laser only within
+   ``band_px`` of it. One spot per laser, one laser per candidate, solved as a linear
+   assignment on ``-log(score)``.
+
+Every candidate is returned with the reason it was or was not used; every laser without a spot
+is in ``missing`` with a reason.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+from scipy.optimize import least_squares, linear_sum_assignment
+
+from sfm_laserscale.errors import InputError
+from sfm_laserscale.model import Camera, Spot
+from sfm_laserscale.rig import Laser, Rig
+
+logger = logging.getLogger(__name__)
+
+F32 = NDArray[np.float32]
+F64 = NDArray[np.float64]
+CHANNELS: dict[str, int] = {"red": 0, "green": 1, "blue": 2}
+UNCALIBRATED_REASON = "uncalibrated laser: give its spots with --spots"
+_INADMISSIBLE = 1e6
+
+
+@dataclass(frozen=True)
+class DetectionOptions:
+    """Settings of :func:`detect_spots` (lengths in pixels unless named otherwise).
+
+    - ``min_range_m``/``max_range_m``: part of each beam (metres from its origin along the beam)
+      where spots are searched; its projection is the beam's image segment.
+    - ``band_px``: max distance of a spot centre from its beam segment; None = 3 px + 0.5 % of
+      the image diagonal (≈ 14 px at 1920×1080), to absorb calibration error.
+    - ``spot_sigmas_px``: blob scales (Gaussian sigma) searched by the DoG.
+    - ``max_spot_radius_px``: larger half-maximum radius = not a spot; None = 1.5 % of the
+      diagonal (≈ 33 px at 1920×1080).
+    - ``min_snr``: candidate threshold, peak contrast over the local background noise.
+    - ``max_annulus_ratio``: compactness; the 75th percentile of the colour response in a ring
+      around the spot, relative to its peak contrast, must stay below this.
+    - ``min_score``: an assigned spot with a lower score is reported in ``missing`` instead.
+    - ``snr_half``: SNR at which the contrast term of the score is 0.5.
+    - ``refine``: "centroid" (Gaussian-windowed centroid of the background-subtracted summed
+      channels) or "gaussian" (2D Gaussian fit to the unclipped pixels).
+    - ``sigma_floor_px``: floor of the reported localisation sigma (model error).
+    - ``saturation_level``: channel value (0–1) above which a pixel counts as clipped.
+    - ``max_candidates``: strongest local maxima examined per colour.
+    """
+
+    min_range_m: float = 0.5
+    max_range_m: float = 10.0
+    band_px: float | None = None
+    spot_sigmas_px: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0)
+    max_spot_radius_px: float | None = None
+    min_snr: float = 6.0
+    max_annulus_ratio: float = 0.5
+    min_score: float = 0.25
+    snr_half: float = 10.0
+    refine: str = "centroid"
+    refine_signal: str = "laser"
+    sigma_floor_px: float = 0.05
+    saturation_level: float = 250.0 / 255.0
+    max_candidates: int = 100
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One local maximum of a colour response, as measured, and what became of it.
+
+    ``x``/``y``: refined centre (COLMAP convention). ``response``: DoG value (intensity units,
+    ≈ half the peak colour contrast). ``score``: geometry-free score times the beam term of the
+    nearest admissible laser (0 when rejected). ``laser``: the laser it was assigned to, or None.
+    ``reason``: "assigned to L1" or why it was not used.
+    """
+
+    x: float
+    y: float
+    color: str
+    response: float
+    snr: float
+    radius_px: float
+    roundness: float
+    score: float
+    laser: str | None
+    reason: str
+
+
+@dataclass(frozen=True)
+class DetectionResult:
+    """Assigned spots, every candidate considered, and lasers without a spot (name -> reason)."""
+
+    spots: tuple[Spot, ...]
+    candidates: tuple[Candidate, ...]
+    missing: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass
+class _Measure:
+    """Mutable per-candidate working record (internal)."""
+
+    x: float
+    y: float
+    color: str
+    response: float
+    snr: float = 0.0
+    radius_px: float = 0.0
+    roundness: float = 0.0
+    base_score: float = 0.0
+    sigma_px: float = 1.0
+    rejected: str | None = None
+    score: float = 0.0
+    laser: str | None = None
+    reason: str = ""
+
+
+# ----------------------------------------------------------------------------- geometry
+
+
+def default_band_px(width: int, height: int) -> float:
+    """Default beam band half-width: 3 px + 0.5 % of the image diagonal."""
+    return 3.0 + 0.005 * math.hypot(width, height)
+
+
+def default_max_spot_radius_px(width: int, height: int) -> float:
+    """Default largest spot half-maximum radius: 1.5 % of the image diagonal (at least 6 px)."""
+    return max(6.0, 0.015 * math.hypot(width, height))
+
+
+def _normalised_bounds(camera: Camera, margin: float = 0.15) -> F64:
+    """(2, 2) [[xmin, ymin], [xmax, ymax]] of the image in normalised (z = 1) coordinates."""
+    w, h = float(camera.width), float(camera.height)
+    t = np.linspace(0.0, 1.0, 9)
+    border = np.concatenate([
+        np.column_stack([t * w, np.zeros_like(t)]), np.column_stack([t * w, np.full_like(t, h)]),
+        np.column_stack([np.zeros_like(t), t * h]), np.column_stack([np.full_like(t, w), t * h]),
+    ])
+    xy = camera.unproject(border)[:, :2]
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    pad = margin * (hi - lo)
+    return np.stack([lo - pad, hi + pad])
+
+
+def beam_polyline_px(
+    camera: Camera, laser: Laser, min_range_m: float, max_range_m: float, samples: int = 64
+) -> F64:
+    """(K, 2) projection of a calibrated beam's [min, max] range part (pixels); K = 0 if unseen.
+
+    Beam points are sampled uniformly in 1 / range (uniform in the image for a pinhole) and
+    only those whose normalised coordinates lie within the (padded) field of view are projected,
+    so lens-distortion polynomials are never evaluated far outside their valid domain.
+    """
+    if laser.origin is None or laser.direction is None:
+        return np.zeros((0, 2))
+    inv = np.linspace(1.0 / max_range_m, 1.0 / min_range_m, samples)
+    pts = laser.origin[None, :] + (1.0 / inv)[:, None] * laser.direction[None, :]
+    pts = pts[pts[:, 2] > 1e-6]
+    if len(pts) == 0:
+        return np.zeros((0, 2))
+    xy_n = pts[:, :2] / pts[:, 2:3]
+    bounds = _normalised_bounds(camera)
+    inside = np.all((xy_n >= bounds[0]) & (xy_n <= bounds[1]), axis=1)
+    if not np.any(inside):
+        return np.zeros((0, 2))
+    return camera.project(pts[inside])
+
+
+def distance_to_polyline(xy: F64, polyline: F64) -> F64:
+    """(N,) Euclidean distance of (N, 2) points to a (K, 2) polyline (inf if K = 0)."""
+    xy = np.atleast_2d(xy)
+    if len(polyline) == 0:
+        return np.full(len(xy), np.inf)
+    if len(polyline) == 1:
+        return np.asarray(np.linalg.norm(xy - polyline[0], axis=1), dtype=np.float64)
+    a, b = polyline[:-1], polyline[1:]  # (S, 2)
+    ab = b - a
+    ap = xy[:, None, :] - a[None, :, :]  # (N, S, 2)
+    denom = np.maximum(np.sum(ab * ab, axis=1), 1e-12)
+    t = np.clip(np.sum(ap * ab[None], axis=2) / denom[None], 0.0, 1.0)
+    closest = a[None] + t[..., None] * ab[None]
+    return np.asarray(np.linalg.norm(xy[:, None, :] - closest, axis=2).min(axis=1))
+
+
+# ----------------------------------------------------------------------------- responses
+
+
+def colour_difference(image: F32, color: str, saturation_level: float) -> F32:
+    """(H, W) laser-colour response: channel minus the max of the others, clipped cores filled.
+
+    Pixels whose laser channel is clipped get at least the largest colour difference found in a
+    ring (as wide as the clipped region's equivalent radius, 2–12 px) around their clipped
+    region: a saturated laser core inherits its coloured halo, a white highlight gets ~0.
+    """
+    c = CHANNELS[color]
+    o1, o2 = [i for i in range(3) if i != c]
+    diff = image[..., c] - np.maximum(image[..., o1], image[..., o2])
+    clipped = image[..., c] >= saturation_level
+    if not np.any(clipped):
+        return np.asarray(diff, dtype=np.float32)
+    # distance of every unclipped pixel to the nearest clipped one, with that region's label
+    src = np.where(clipped, 0, 255).astype(np.uint8)
+    dist, lab = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5,
+                                                labelType=cv2.DIST_LABEL_CCOMP)
+    n = int(lab.max())
+    area = np.bincount(lab[clipped].ravel(), minlength=n + 1).astype(np.float64)
+    width = np.clip(np.sqrt(area / np.pi), 2.0, 12.0)
+    ring = (~clipped) & (dist <= width[lab])
+    fill = np.full(n + 1, -np.inf)
+    np.maximum.at(fill, lab[ring], diff[ring].astype(np.float64))
+    fill[~np.isfinite(fill)] = 0.0
+    out = diff.copy()
+    out[clipped] = np.maximum(diff[clipped], fill[lab[clipped]].astype(np.float32))
+    return np.asarray(out, dtype=np.float32)
+
+
+def _dog_at_scale(resp: F32, sigma: float) -> F32:
+    """Scale-normalised DoG -(G(1.6σ) - G(σ)) / 0.6 at full size, computed on a pyramid level.
+
+    Scales of 4 px and more are filtered on an image reduced by a power of two (area
+    averaging) so that the kernel stays a few pixels wide, then resized back (bilinear).
+    """
+    k = 1.6
+    factor = 1
+    while sigma / (2 * factor) >= 2.0:
+        factor *= 2
+    small = resp
+    if factor > 1:
+        size = (max(1, resp.shape[1] // factor), max(1, resp.shape[0] // factor))
+        small = cv2.resize(resp, size, interpolation=cv2.INTER_AREA)
+    s = sigma / factor
+    g1 = cv2.GaussianBlur(small, (0, 0), s, borderType=cv2.BORDER_REFLECT)
+    g2 = cv2.GaussianBlur(small, (0, 0), k * s, borderType=cv2.BORDER_REFLECT)
+    dog = (g1 - g2) / np.float32(k - 1.0)
+    if factor > 1:
+        dog = cv2.resize(dog, (resp.shape[1], resp.shape[0]), interpolation=cv2.INTER_LINEAR)
+    return np.asarray(dog, dtype=np.float32)
+
+
+def blob_response(resp: F32, sigmas: tuple[float, ...]) -> F32:
+    """(H, W) max over ``sigmas`` of the scale-normalised DoG of a colour response."""
+    out = _dog_at_scale(resp, sigmas[0])
+    for s in sigmas[1:]:
+        np.maximum(out, _dog_at_scale(resp, s), out=out)
+    return out
+
+
+def _local_maxima(dog: F32, min_value: float, max_count: int) -> NDArray[np.intp]:
+    """(N, 2) integer (row, col) of 5×5 local maxima above ``min_value``, strongest first."""
+    peaks = (dog >= ndimage.maximum_filter(dog, size=5, mode="nearest")) & (dog > min_value)
+    rows, cols = np.nonzero(peaks)
+    order = np.argsort(-dog[rows, cols], kind="stable")[:max_count]
+    return np.column_stack([rows[order], cols[order]])
+
+
+def _robust_std(values: NDArray[np.floating]) -> float:
+    """1.4826 × median absolute deviation."""
+    if values.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(values - np.median(values))))
+
+
+# ----------------------------------------------------------------------------- measurement
+
+
+def _window(shape: tuple[int, ...], row: int, col: int, radius: int) -> tuple[slice, slice]:
+    """Slices of the (2 radius + 1)² window around (row, col), clipped to the image."""
+    return (slice(max(0, row - radius), min(shape[0], row + radius + 1)),
+            slice(max(0, col - radius), min(shape[1], col + radius + 1)))
+
+
+def _grid(win: tuple[slice, slice]) -> tuple[F64, F64]:
+    """Pixel-centre coordinates (x, y) of a window, COLMAP convention (centre = index + 0.5)."""
+    ys = np.arange(win[0].start, win[0].stop, dtype=np.float64) + 0.5
+    xs = np.arange(win[1].start, win[1].stop, dtype=np.float64) + 0.5
+    gx, gy = np.meshgrid(xs, ys)
+    return gx, gy
+
+
+def _half_max_region(
+    patch: F32, r0: int, c0: int, level: float
+) -> tuple[NDArray[np.bool_], bool]:
+    """Connected region of ``patch >= level`` holding (r0, c0), and whether it touches the edge."""
+    labels, _ = ndimage.label(patch >= level)
+    lab = labels[r0, c0]
+    if lab == 0:
+        region = np.zeros(patch.shape, dtype=bool)
+        region[r0, c0] = True
+        return region, False
+    region = labels == lab
+    touches = bool(region[0].any() or region[-1].any() or region[:, 0].any()
+                   or region[:, -1].any())
+    return region, touches
+
+
+def _roundness(region: NDArray[np.bool_]) -> float:
+    """sqrt(λmin / λmax) of the region's second moments (1 = round, 0 = a line)."""
+    rr, cc = np.nonzero(region)
+    if len(rr) < 3:
+        return 1.0
+    cov = np.cov(np.stack([rr, cc]).astype(np.float64)) + np.eye(2) / 12.0  # pixel extent
+    ev = np.linalg.eigvalsh(cov)
+    return float(np.sqrt(max(ev[0], 0.0) / max(ev[1], 1e-12)))
+
+
+def _shape_and_contrast(
+    resp: F32, row: int, col: int, max_radius: float, max_annulus_ratio: float
+) -> tuple[float, float, float, float, str | None]:
+    """(radius_px, roundness, contrast, snr, rejection) of the colour blob at (row, col)."""
+    big = int(math.ceil(max_radius)) + 2
+    win = _window(resp.shape, row, col, big)
+    patch = resp[win]
+    r0, c0 = row - win[0].start, col - win[1].start
+    peak = float(resp[_window(resp.shape, row, col, 1)].max())
+    gx, gy = _grid(win)
+    rr = np.hypot(gx - (col + 0.5), gy - (row + 0.5))
+    outer = patch[rr >= big - 3]
+    bg = float(np.median(outer)) if outer.size else 0.0
+    contrast = peak - bg
+    if contrast <= 0:
+        return 0.0, 0.0, contrast, 0.0, "no contrast against its surroundings"
+    region, touches = _half_max_region(patch, r0, c0, bg + 0.5 * contrast)
+    radius = math.sqrt(region.sum() / math.pi)
+    roundness = _roundness(region)
+    if touches or radius > max_radius:
+        return radius, roundness, contrast, 0.0, (
+            f"too large to be a spot (half-max radius > {max_radius:.1f} px)")
+    ring = patch[(rr >= 2.0 * radius + 2.0) & (rr <= 2.0 * radius + 5.0)]
+    noise = max(_robust_std(ring - bg), _robust_std(outer), 0.5 / 255.0)
+    snr = contrast / noise
+    ratio = float(np.percentile(ring - bg, 75)) / contrast if ring.size else 0.0
+    if ratio > max_annulus_ratio:
+        return radius, roundness, contrast, snr, (
+            f"not compact (coloured surroundings: ring/peak {ratio:.2f} > {max_annulus_ratio})")
+    return radius, roundness, contrast, snr, None
+
+
+# ----------------------------------------------------------------------------- sub-pixel
+
+
+def _plane_background(patch: F64, mask: NDArray[np.bool_], gx: F64, gy: F64) -> F64:
+    """Least-squares plane a + b x + c y fitted to ``patch[mask]`` (one trimming pass)."""
+    A = np.column_stack([np.ones(mask.sum()), gx[mask], gy[mask]])
+    b = patch[mask]
+    coef = np.linalg.lstsq(A, b, rcond=None)[0]
+    res = b - A @ coef
+    keep = np.abs(res) <= 2.5 * max(_robust_std(res), 1e-6)
+    if keep.sum() >= 3:
+        coef = np.linalg.lstsq(A[keep], b[keep], rcond=None)[0]
+    return np.asarray(coef[0] + coef[1] * gx + coef[2] * gy, dtype=np.float64)
+
+
+def refine_centroid(
+    signal: F32, x0: float, y0: float, sigma_w: float, iterations: int = 30
+) -> tuple[float, float, float]:
+    """Gaussian-windowed, background-subtracted centroid (x, y, 1-sigma noise, COLMAP px).
+
+    The window (sigma ``sigma_w``) follows the estimate until it stops moving; for any
+    point-symmetric spot the true centre is the fixed point, so the estimate is unbiased. The
+    background is a plane fitted to a ring just outside the window. The returned sigma is the
+    centroid's noise propagated from the ring's residual scatter.
+    """
+    radius = int(math.ceil(3.0 * sigma_w)) + 1
+    x, y = x0, y0
+    noise_var = 0.0
+    for _ in range(iterations):
+        win = _window(signal.shape, int(math.floor(y)), int(math.floor(x)), radius + 3)
+        gx, gy = _grid(win)
+        patch = signal[win].astype(np.float64)
+        rr2 = (gx - x) ** 2 + (gy - y) ** 2
+        ring = rr2 >= radius * radius
+        bg = _plane_background(patch, ring, gx, gy) if ring.sum() >= 6 else np.zeros_like(patch)
+        sig = np.clip(patch - bg, 0.0, None)
+        g = np.exp(-0.5 * rr2 / (sigma_w * sigma_w)) * (~ring)
+        w = sig * g
+        total = float(w.sum())
+        if total <= 0:
+            break
+        nx, ny = float((w * gx).sum() / total), float((w * gy).sum() / total)
+        sigma_n = _robust_std((patch - bg)[ring]) if ring.sum() >= 6 else 0.0
+        noise_var = sigma_n**2 * float((g * g * ((gx - nx) ** 2 + (gy - ny) ** 2)).sum()) / (
+            2.0 * total * total)
+        moved = math.hypot(nx - x, ny - y)
+        x, y = nx, ny
+        if moved < 1e-5:
+            break
+    return x, y, math.sqrt(noise_var)
+
+
+def refine_gaussian(
+    signal: F32, clipped: NDArray[np.bool_], x0: float, y0: float, sigma0: float
+) -> tuple[float, float, float]:
+    """2D Gaussian + plane fit to the unclipped pixels near (x0, y0): (x, y, 1-sigma, COLMAP px).
+
+    Clipped pixels (``clipped`` True) are left out, so a saturated core does not flatten the
+    fitted profile; the flanks of the spot carry its position.
+    """
+    radius = int(math.ceil(3.5 * sigma0)) + 2
+    win = _window(signal.shape, int(math.floor(y0)), int(math.floor(x0)), radius)
+    gx, gy = _grid(win)
+    patch = signal[win].astype(np.float64)
+    use = ~clipped[win]
+    if use.sum() < 8:
+        return x0, y0, 1.0
+    px, py, pv = gx[use], gy[use], patch[use]
+
+    def model(p: F64) -> F64:
+        a, x, y, s, b0, bx, by = p
+        g = a * np.exp(-0.5 * ((px - x) ** 2 + (py - y) ** 2) / (s * s))
+        return np.asarray(g + b0 + bx * (px - x0) + by * (py - y0), dtype=np.float64)
+
+    base = float(np.percentile(pv, 10))
+    p0 = np.array([max(patch.max() - base, 1e-3) * 1.5, x0, y0, sigma0, base, 0.0, 0.0])
+    fit = least_squares(lambda p: model(p) - pv, p0, method="lm", max_nfev=200)
+    x, y = float(fit.x[1]), float(fit.x[2])
+    if not (fit.success and math.hypot(x - x0, y - y0) < radius):
+        return x0, y0, 1.0
+    dof = max(len(pv) - 7, 1)
+    s2 = float(fit.fun @ fit.fun) / dof
+    try:
+        cov = np.linalg.inv(fit.jac.T @ fit.jac) * s2
+        sig = math.sqrt(max(0.5 * (cov[1, 1] + cov[2, 2]), 0.0))
+    except np.linalg.LinAlgError:
+        sig = 1.0
+    return x, y, sig
+
+
+# ----------------------------------------------------------------------------- candidates
+
+
+def _check_image(image_rgb: NDArray[np.uint8], camera: Camera) -> F32:
+    """Validate the image against its camera; return it as float32 in [0, 1]."""
+    if image_rgb.ndim != 3 or image_rgb.shape[2] != 3:
+        raise InputError(f"laser image must be RGB (H, W, 3), got shape {image_rgb.shape}")
+    if image_rgb.shape[:2] != (camera.height, camera.width):
+        raise InputError(
+            f"laser image is {image_rgb.shape[1]}x{image_rgb.shape[0]} px but its camera is "
+            f"{camera.width}x{camera.height} px")
+    scale = 255.0 if image_rgb.dtype == np.uint8 else 1.0
+    return np.asarray(image_rgb, dtype=np.float32) / np.float32(scale)
+
+
+@dataclass(frozen=True)
+class _Planes:
+    """Per-colour full-resolution arrays shared by all candidates of that colour."""
+
+    resp: F32  # (H, W) colour-difference response (clipped cores filled)
+    signal: F32  # (H, W) intensity used for sub-pixel refinement
+    clipped: NDArray[np.bool_]  # (H, W) any channel clipped
+
+
+def _planes(img: F32, color: str, options: DetectionOptions) -> _Planes:
+    """Colour response, refinement signal and clipped mask for one laser colour."""
+    resp = colour_difference(img, color, options.saturation_level)
+    if options.refine_signal == "sum":
+        signal = np.asarray(img.sum(axis=2), dtype=np.float32)
+    else:
+        signal = np.ascontiguousarray(img[..., CHANNELS[color]])
+    clipped = np.asarray(img.max(axis=2) >= options.saturation_level)
+    return _Planes(resp=resp, signal=signal, clipped=clipped)
+
+
+def _refine(planes: _Planes, m: _Measure, options: DetectionOptions) -> tuple[float, float, float]:
+    """Sub-pixel centre and localisation sigma of one candidate (COLMAP px)."""
+    sigma_w = max(1.0, m.radius_px)
+    if options.refine == "gaussian":
+        return refine_gaussian(planes.signal, planes.clipped, m.x, m.y, sigma_w)
+    return refine_centroid(planes.signal, m.x, m.y, sigma_w)
+
+
+def _measure_peak(
+    planes: _Planes, rc: tuple[int, int], dog_value: float, color: str,
+    options: DetectionOptions, max_radius: float,
+) -> _Measure:
+    """Measure, validate and refine one local maximum."""
+    row, col = rc
+    # integer array index (row, col) -> COLMAP pixel centre (+0.5)
+    m = _Measure(x=col + 0.5, y=row + 0.5, color=color, response=dog_value)
+    radius, roundness, contrast, snr, why = _shape_and_contrast(
+        planes.resp, row, col, max_radius, options.max_annulus_ratio)
+    m.radius_px, m.roundness, m.snr = radius, roundness, snr
+    if why is None and snr < options.min_snr:
+        why = f"weak (SNR {snr:.1f} < {options.min_snr:g})"
+    if why is not None:
+        m.rejected = why
+        return m
+    x, y, sig = _refine(planes, m, options)
+    if math.hypot(x - m.x, y - m.y) > max(2.0, 1.5 * radius):
+        m.rejected = "sub-pixel refinement diverged"
+        return m
+    m.x, m.y = x, y
+    m.sigma_px = math.hypot(sig, options.sigma_floor_px)
+    m.base_score = snr / (snr + options.snr_half) * math.sqrt(roundness)
+    return m
+
+
+def _candidates_for_colour(
+    img: F32, color: str, options: DetectionOptions, max_radius: float
+) -> list[_Measure]:
+    """All local maxima of one colour's blob response, measured and refined."""
+    planes = _planes(img, color, options)
+    dog = blob_response(planes.resp, options.spot_sigmas_px)
+    threshold = max(4.0 * _robust_std(dog[::4, ::4]), 2.0 / 255.0)
+    out: list[_Measure] = []
+    for row, col in _local_maxima(dog, threshold, options.max_candidates):
+        m = _measure_peak(planes, (int(row), int(col)), float(dog[row, col]), color,
+                          options, max_radius)
+        dup = next((o for o in out if o.rejected is None and m.rejected is None
+                    and math.hypot(o.x - m.x, o.y - m.y) < max(2.0, o.radius_px)), None)
+        if dup is not None:
+            m.rejected = f"duplicate of the stronger maximum at ({dup.x:.1f}, {dup.y:.1f})"
+        out.append(m)
+    return out
+
+
+def _colours_needed(rig: Rig) -> list[str]:
+    """Laser colours to search, in channel order ("any" needs all three)."""
+    wanted = {las.color for las in rig.lasers}
+    if "any" in wanted:
+        return list(CHANNELS)
+    return [c for c in CHANNELS if c in wanted]
+
+
+# ----------------------------------------------------------------------------- assignment
+
+
+def _beam_term(dist_px: F64, band_px: float) -> F64:
+    """Score factor for the distance to the beam segment: exp(-½ (d / band)²)."""
+    return np.asarray(np.exp(-0.5 * (dist_px / band_px) ** 2), dtype=np.float64)
+
+
+def _any_colour(laser: Laser, valid: list[_Measure], dist: F64, band: float) -> str:
+    """For a colour-'any' laser: the colour of the strongest admissible candidate."""
+    best = max(
+        (m for m, d in zip(valid, dist, strict=True) if d <= band),
+        key=lambda m: m.response, default=None,
+    )
+    return best.color if best is not None else "red"
+
+
+def _laser_costs(
+    rig: Rig, camera: Camera, valid: list[_Measure], options: DetectionOptions, band: float
+) -> tuple[F64, F64, dict[str, str]]:
+    """(L, N) assignment cost -log(score) and distance to beam for calibrated lasers."""
+    xy = np.array([[m.x, m.y] for m in valid]).reshape(-1, 2)
+    base = np.array([m.base_score for m in valid])
+    cost = np.full((len(rig.lasers), len(valid)), _INADMISSIBLE)
+    dist = np.full((len(rig.lasers), len(valid)), np.inf)
+    unseen: dict[str, str] = {}
+    for i, las in enumerate(rig.lasers):
+        if not las.calibrated:
+            continue
+        line = beam_polyline_px(camera, las, options.min_range_m, options.max_range_m)
+        if len(line) == 0:
+            unseen[las.name] = (f"its beam ({options.min_range_m:g}–{options.max_range_m:g} m) "
+                                "is outside the image")
+            continue
+        dist[i] = distance_to_polyline(xy, line) if len(valid) else dist[i]
+        color = las.color if las.color != "any" else _any_colour(las, valid, dist[i], band)
+        ok = (dist[i] <= band) & np.array([m.color == color for m in valid], dtype=bool)
+        score = base * _beam_term(dist[i], band)
+        cost[i, ok] = -np.log(np.maximum(score[ok], 1e-12))
+    return cost, dist, unseen
+
+
+def _missing_reason(las: Laser, li: int, valid: list[_Measure], dist: F64, band: float) -> str:
+    """Why a calibrated laser got no admissible candidate."""
+    same = [j for j, m in enumerate(valid) if las.color in ("any", m.color)]
+    if not same:
+        return f"no {las.color} spot candidate in the image"
+    j = min(same, key=lambda k: dist[li, k])
+    return (f"no {las.color} spot within {band:.1f} px of its beam "
+            f"(nearest candidate {dist[li, j]:.1f} px away)")
+
+
+def _assign_calibrated(
+    rig: Rig, camera: Camera, valid: list[_Measure], options: DetectionOptions, band: float
+) -> tuple[dict[str, int], dict[str, str], F64]:
+    """Laser name -> index into ``valid`` by linear assignment; missing reasons; distances."""
+    cost, dist, missing = _laser_costs(rig, camera, valid, options, band)
+    chosen: dict[str, int] = {}
+    rows, cols = linear_sum_assignment(cost) if cost.size else (np.array([]), np.array([]))
+    for li, cj in zip(rows.tolist(), cols.tolist(), strict=True):
+        if cost[li, cj] >= _INADMISSIBLE:
+            continue
+        las, score = rig.lasers[li], math.exp(-cost[li, cj])
+        m = valid[cj]
+        if score < options.min_score:
+            missing[las.name] = (f"best candidate ({m.x:.1f}, {m.y:.1f}) scores {score:.2f} "
+                                 f"< min_score {options.min_score:g}")
+            m.reason = f"score {score:.2f} below min_score for {las.name}"
+            continue
+        m.score, m.laser, m.reason = score, las.name, f"assigned to {las.name}"
+        chosen[las.name] = cj
+    for li, las in enumerate(rig.lasers):
+        if las.calibrated and las.name not in chosen and las.name not in missing:
+            missing[las.name] = _missing_reason(las, li, valid, dist, band)
+    return chosen, missing, dist
+
+
+def _assign_uncalibrated(
+    rig: Rig, valid: list[_Measure], taken: set[int], options: DetectionOptions
+) -> tuple[dict[str, int], dict[str, str]]:
+    """Uncalibrated lasers: the best free candidate of their colour if that colour is unique."""
+    chosen: dict[str, int] = {}
+    missing: dict[str, str] = {}
+    for las in rig.lasers:
+        if las.calibrated:
+            continue
+        same = [o for o in rig.lasers if o.color == las.color]
+        if las.color == "any" or len(same) > 1:
+            missing[las.name] = UNCALIBRATED_REASON
+            continue
+        free = [j for j, m in enumerate(valid) if m.color == las.color and j not in taken]
+        if not free:
+            missing[las.name] = f"no free {las.color} spot candidate in the image"
+            continue
+        j = max(free, key=lambda k: valid[k].base_score)
+        m = valid[j]
+        if m.base_score < options.min_score:
+            missing[las.name] = (f"best {las.color} candidate ({m.x:.1f}, {m.y:.1f}) scores "
+                                 f"{m.base_score:.2f} < min_score {options.min_score:g}")
+            m.reason = f"score below min_score for {las.name}"
+            continue
+        m.score, m.laser, m.reason = m.base_score, las.name, f"assigned to {las.name} by colour"
+        chosen[las.name] = j
+        taken.add(j)
+    return chosen, missing
+
+
+def _explain_unused(rig: Rig, valid: list[_Measure], dist: F64, band: float) -> None:
+    """Fill the reason (and a geometry-aware score) of valid candidates left unassigned."""
+    names = rig.names
+    for j, m in enumerate(valid):
+        if m.laser is not None:
+            continue
+        col = dist[:, j] if dist.size else np.zeros(0)
+        finite = np.isfinite(col)
+        m.score = m.base_score * (float(_beam_term(col[finite], band).max()) if finite.any()
+                                  else 1.0)
+        if m.reason:
+            continue
+        if not finite.any():
+            m.reason = "no laser of its colour to take it"
+            continue
+        li = int(np.argmin(np.where(finite, col, np.inf)))
+        if col[li] > band:
+            m.reason = f"off every beam band (nearest: {names[li]} at {col[li]:.1f} px)"
+        else:
+            m.reason = f"a better candidate was assigned to {names[li]}"
+
+
+# ----------------------------------------------------------------------------- entry point
+
+
+def detect_spots(
+    image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
+    options: DetectionOptions = DetectionOptions(),  # noqa: B008 (frozen dataclass)
+) -> DetectionResult:
+    """Detect laser spots in one image and assign them to the rig's lasers."""
+    img = _check_image(image_rgb, camera)
+    band = options.band_px or default_band_px(camera.width, camera.height)
+    max_radius = options.max_spot_radius_px or default_max_spot_radius_px(
+        camera.width, camera.height)
+    measures = [m for color in _colours_needed(rig)
+                for m in _candidates_for_colour(img, color, options, max_radius)]
+    valid = [m for m in measures if m.rejected is None]
+    chosen, missing, dist = _assign_calibrated(rig, camera, valid, options, band)
+    chosen_u, missing_u = _assign_uncalibrated(rig, valid, set(chosen.values()), options)
+    chosen.update(chosen_u)
+    missing.update(missing_u)
+    _explain_unused(rig, valid, dist, band)
+    spots = tuple(
+        Spot(laser=name, x=valid[j].x, y=valid[j].y, score=float(np.clip(valid[j].score, 0, 1)),
+             sigma_px=valid[j].sigma_px, source="detected")
+        for name in rig.names if (j := chosen.get(name)) is not None
+    )
+    candidates = tuple(
+        Candidate(x=m.x, y=m.y, color=m.color, response=m.response, snr=m.snr,
+                  radius_px=m.radius_px, roundness=m.roundness,
+                  score=0.0 if m.rejected else float(m.score), laser=m.laser,
+                  reason=m.rejected or m.reason)
+        for m in measures
+    )
+    logger.debug("%d candidates, %d spots, missing: %s", len(candidates), len(spots), missing)
+    return DetectionResult(spots=spots, candidates=candidates, missing=missing)

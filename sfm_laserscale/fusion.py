@@ -1,0 +1,271 @@
+"""Robust fusion of per-image scale estimates into one scale with a calibrated interval.
+
+Error model: estimate j of image i is s + e_ij + g_ij·δ, where e_i (spots + pose) is random,
+correlated within an image (shared pose) and independent between images, and δ (rig
+calibration, unit-σ parameters) is COMMON to all images.
+
+1. Per image: GLS mean of its non-rejected estimates with their joint covariance (so the shared
+   pose error is not averaged away); with >= 3 estimates, an estimate whose leave-one-out
+   residual exceeds ``within_image_threshold`` σ is rejected first (iterated).
+2. Across images: the worst image is rejected while its normalised residual from the weighted
+   median exceeds ``outlier_threshold`` robust sigmas (robust sigma = max(1, 1.4826·MAD) of the
+   normalised residuals; needs >= ``min_images_for_rejection`` images), iterated.
+3. Inverse-variance mean of the kept images (random σ only). Birge ratio R = √(χ²/dof) with the
+   images' full covariance (random + rig); when R > 1 the random σ is inflated by R and the
+   interval uses Student's t with dof = n − 1 (for one image: the within-image χ²).
+4. The rig term is propagated through the mean's gradient and added AFTER averaging:
+   σ² = (R⁺σ_rand)² + σ_rig², half-width = √((q σ_rand_eff)² + (z σ_rig)²).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
+from sfm_laserscale.uncertainty import METHODS, Estimate, ImageEstimates
+
+logger = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class FusionOptions:
+    """Options of :func:`fuse`."""
+
+    outlier_threshold: float = 3.5  # robust sigmas, across images
+    within_image_threshold: float = 3.5  # σ of the leave-one-out residual, within an image
+    min_images_for_rejection: int = 3  # fewer images: no cross-image rejection possible
+    min_estimates: int = 1  # fewer usable estimates: no scale (value NaN)
+    confidence: float = 0.95
+
+
+@dataclass(frozen=True)
+class ImageCombination:
+    """GLS combination of one image's estimates of one method."""
+
+    image: str
+    value: float  # m per model unit
+    sigma_random: float  # spots + pose
+    rig_gradient: F64  # (R,) d value / d unit-σ rig parameter (ordered as rig_params)
+    rig_params: tuple[str, ...]
+    used: tuple[Estimate, ...]
+    rejected: tuple[tuple[str, str], ...]  # (laser, reason) rejected here or before
+    chi2: float  # within-image χ² of the used estimates about the GLS mean
+    dof: int
+
+    @property
+    def sigma(self) -> float:
+        """Total σ of the image value (random and rig)."""
+        return float(np.hypot(self.sigma_random, np.linalg.norm(self.rig_gradient)))
+
+
+@dataclass(frozen=True)
+class FusedScale:
+    """The fused scale of one method, its uncertainty and what was rejected."""
+
+    value: float  # metres per model unit (NaN when nothing is left)
+    std: float  # total 1-σ: inflated random part and common rig part
+    ci95: tuple[float, float]
+    inverse: float  # model units per metre
+    method: str
+    n_estimates: int  # estimates used
+    n_rejected: int  # estimates rejected (before or during fusion)
+    per_image: dict[str, tuple[float, float]]  # every combined image: (value, total σ)
+    rejected: list[tuple[str, str, str]]  # (image, laser, reason)
+    notes: list[str] = field(default_factory=list)
+    std_random: float = float("nan")  # after Birge inflation
+    std_systematic: float = float("nan")  # common rig calibration part
+    birge_ratio: float = float("nan")
+    images_used: tuple[str, ...] = ()
+    reason: str | None = None  # why there is no value
+
+    def summary(self) -> dict[str, object]:
+        """The report.json ``scale`` block (DESIGN.md §6)."""
+        return {"value": self.value, "std": self.std, "ci95": list(self.ci95),
+                "inverse": self.inverse, "method": self.method,
+                "n_estimates": self.n_estimates, "n_rejected": self.n_rejected}
+
+
+def _gls(values: F64, cov: F64) -> tuple[F64, float]:
+    """GLS weights (n,) (summing to 1) and the χ² of values about the weighted mean."""
+    ones = np.ones(len(values))
+    try:
+        cinv_1 = np.linalg.solve(cov, ones)
+        cinv_v = np.linalg.solve(cov, values)
+    except np.linalg.LinAlgError:
+        pinv = np.linalg.pinv(cov)
+        cinv_1, cinv_v = pinv @ ones, pinv @ values
+    w = cinv_1 / (ones @ cinv_1)
+    chi2 = float(values @ cinv_v - (ones @ cinv_v) ** 2 / (ones @ cinv_1))
+    return w, (max(chi2, 0.0) if np.isfinite(chi2) else 0.0)
+
+
+def _leave_one_out_z(values: F64, cov: F64) -> F64:
+    """|s_k − GLS mean of the others| / σ of that difference, for each k."""
+    z = np.zeros(len(values))
+    for k in range(len(values)):
+        o = np.delete(np.arange(len(values)), k)
+        w, _ = _gls(values[o], cov[np.ix_(o, o)])
+        a = np.zeros(len(values))
+        a[k], a[o] = 1.0, -w
+        var = float(a @ cov @ a)
+        z[k] = abs(a @ values) / np.sqrt(var) if var > 0 else np.inf
+    return z
+
+
+def _usable(ests: tuple[Estimate, ...]) -> tuple[list[int], list[tuple[str, str]]]:
+    """Indices of usable estimates and (laser, reason) of the others."""
+    keep, rej = [], []
+    for i, e in enumerate(ests):
+        if e.rejected:
+            rej.append((e.laser, e.reason or "rejected"))
+        elif not (np.isfinite(e.scale) and np.isfinite(e.sigma) and e.sigma > 0):
+            rej.append((e.laser, "no finite estimate with positive sigma"))
+        else:
+            keep.append(i)
+    return keep, rej
+
+
+def combine_image(est: ImageEstimates, method: str, options: FusionOptions
+                  ) -> ImageCombination | None:
+    """GLS combination of one image's estimates of one method (None if none is usable)."""
+    ests = est.of(method)
+    keep, rej = _usable(ests)
+    c_rand = np.asarray(est.covariance_random[method])
+    g_all = np.asarray(est.rig_jacobian[method])
+    values = np.array([e.scale for e in ests])
+    c_tot = c_rand + g_all @ g_all.T if len(ests) else c_rand
+    while len(keep) >= 3:
+        z = _leave_one_out_z(values[keep], c_tot[np.ix_(keep, keep)])
+        worst = int(np.argmax(z))
+        if z[worst] <= options.within_image_threshold:
+            break
+        e = ests[keep.pop(worst)]
+        rej.append((e.laser, f"inconsistent with the image's other {method} estimates "
+                             f"({z[worst]:.1f} sigma)"))
+    if not keep:
+        return ImageCombination(est.image, np.nan, np.nan, np.zeros(len(est.rig_params)),
+                                est.rig_params, (), tuple(rej), 0.0, 0) if rej else None
+    w, chi2 = _gls(values[keep], c_tot[np.ix_(keep, keep)])
+    var_rand = float(w @ c_rand[np.ix_(keep, keep)] @ w)
+    return ImageCombination(est.image, float(w @ values[keep]), float(np.sqrt(max(var_rand, 0))),
+                            w @ g_all[keep], est.rig_params, tuple(ests[i] for i in keep),
+                            tuple(rej), chi2, len(keep) - 1)
+
+
+def _align_rig(combos: list[ImageCombination]) -> tuple[F64, tuple[str, ...]]:
+    """(n, R) rig gradients of all images on the union of their rig parameter names."""
+    names: list[str] = []
+    for c in combos:
+        names += [p for p in c.rig_params if p not in names]
+    g = np.zeros((len(combos), len(names)))
+    for i, c in enumerate(combos):
+        for j, p in enumerate(c.rig_params):
+            g[i, names.index(p)] = c.rig_gradient[j]
+    return g, tuple(names)
+
+
+def _weighted_median(values: F64, weights: F64) -> float:
+    order = np.argsort(values)
+    cum = np.cumsum(weights[order])
+    return float(values[order][np.searchsorted(cum, 0.5 * cum[-1])])
+
+
+def _reject_images(combos: list[ImageCombination], options: FusionOptions
+                   ) -> tuple[list[ImageCombination], list[tuple[ImageCombination, str]]]:
+    """Iteratively drop the worst image beyond the robust threshold."""
+    kept = list(combos)
+    dropped: list[tuple[ImageCombination, str]] = []
+    while len(kept) >= max(3, options.min_images_for_rejection):
+        v = np.array([c.value for c in kept])
+        s = np.array([c.sigma_random for c in kept])
+        centre = _weighted_median(v, 1.0 / s**2)
+        z = (v - centre) / s
+        spread = max(1.0, 1.4826 * float(np.median(np.abs(z))))
+        worst = int(np.argmax(np.abs(z)))
+        if abs(z[worst]) <= options.outlier_threshold * spread:
+            break
+        c = kept.pop(worst)
+        dropped.append((c, f"image scale {c.value:.6g} deviates from the consensus "
+                           f"{centre:.6g} by {abs(z[worst]) / spread:.1f} robust sigmas"))
+    return kept, dropped
+
+
+def _birge(combos: list[ImageCombination], w: F64, g: F64) -> tuple[float, int]:
+    """Birge ratio √(χ²/dof) of the kept images about the weighted mean (full covariance)."""
+    n = len(combos)
+    if n == 1:
+        c = combos[0]
+        return (float(np.sqrt(c.chi2 / c.dof)), c.dof) if c.dof > 0 else (float("nan"), 0)
+    v = np.array([c.value for c in combos])
+    cov = np.diag([c.sigma_random**2 for c in combos]) + g @ g.T
+    p = np.eye(n) - np.outer(np.ones(n), w)
+    r = p @ v
+    chi2 = float(r @ np.linalg.pinv(p @ cov @ p.T, rcond=1e-10, hermitian=True) @ r)
+    return float(np.sqrt(chi2 / (n - 1))), n - 1
+
+
+def _nothing(method: str, reason: str, n_rej: int, rejected: list[tuple[str, str, str]],
+             per_image: dict[str, tuple[float, float]]) -> FusedScale:
+    nan = float("nan")
+    return FusedScale(nan, nan, (nan, nan), nan, method, 0, n_rej, per_image, rejected,
+                      [reason], reason=reason)
+
+
+def fuse(estimates: Sequence[ImageEstimates], method: str, options: FusionOptions) -> FusedScale:
+    """Fuse all images' estimates of one method into one scale with a calibrated interval."""
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r} (known: {', '.join(METHODS)})")
+    combos, rejected = [], []
+    for est in estimates:
+        c = combine_image(est, method, options)
+        if c is None:
+            continue
+        rejected += [(est.image, laser, reason) for laser, reason in c.rejected]
+        if c.used:
+            combos.append(c)
+    kept, dropped = _reject_images(combos, options)
+    for c, reason in dropped:
+        rejected += [(c.image, e.laser, reason) for e in c.used]
+    per_image = {c.image: (c.value, c.sigma) for c in combos}
+    n_used = sum(len(c.used) for c in kept)
+    if not kept or n_used < options.min_estimates:
+        why = (f"no usable {method} estimate" if not kept else
+               f"only {n_used} usable {method} estimate(s), need {options.min_estimates}")
+        return _nothing(method, why, len(rejected), rejected, per_image)
+    return _combine_images(kept, method, options, n_used, rejected, per_image)
+
+
+def _combine_images(kept: list[ImageCombination], method: str, options: FusionOptions,
+                    n_used: int, rejected: list[tuple[str, str, str]],
+                    per_image: dict[str, tuple[float, float]]) -> FusedScale:
+    """Inverse-variance mean, Birge inflation, systematic rig term and interval."""
+    sig = np.array([c.sigma_random for c in kept])
+    w = (1.0 / sig**2) / np.sum(1.0 / sig**2)
+    value = float(w @ np.array([c.value for c in kept]))
+    g, _ = _align_rig(kept)
+    sigma_rand = float(np.sqrt(1.0 / np.sum(1.0 / sig**2)))
+    sigma_sys = float(np.linalg.norm(w @ g))
+    birge, dof = _birge(kept, w, g)
+    alpha = 1.0 - options.confidence
+    z = float(stats.norm.ppf(1.0 - alpha / 2))
+    notes = [f"{len(kept)} image(s), {n_used} estimate(s); systematic rig term "
+             f"{sigma_sys:.3g} (does not average down)"]
+    q, sigma_eff = z, sigma_rand
+    if np.isfinite(birge) and birge > 1.0:
+        sigma_eff = sigma_rand * birge
+        q = float(stats.t.ppf(1.0 - alpha / 2, dof))
+        notes.append(f"Birge ratio {birge:.2f} > 1 (dof {dof}): random sigma inflated, "
+                     f"Student t interval")
+    std = float(np.hypot(sigma_eff, sigma_sys))
+    half = float(np.hypot(q * sigma_eff, z * sigma_sys))
+    logger.debug("fused %s: %.6g ± %.3g (birge %.2f)", method, value, std, birge)
+    return FusedScale(value, std, (value - half, value + half), 1.0 / value, method, n_used,
+                      len(rejected), per_image, rejected, notes, sigma_eff, sigma_sys, birge,
+                      tuple(c.image for c in kept))

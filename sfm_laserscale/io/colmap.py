@@ -1,0 +1,885 @@
+"""COLMAP sparse models: read (binary or text, COLMAP 3.x and 4.x), write, rescale losslessly.
+
+Formats (little-endian binary, as COLMAP's ``reconstruction_io_binary.cc`` writes them):
+
+- ``cameras.bin``: u64 count; per camera u32 id, i32 model id, u64 width, u64 height,
+  f64 params[n(model)].
+- ``images.bin``: u64 count; per image u32 id, f64 qw qx qy qz tx ty tz (cam_from_world),
+  u32 camera id, NUL-terminated name, u64 n; n × (f64 x, f64 y, u64 point3D id).
+- ``points3D.bin``: u64 count; per point u64 id, f64 xyz, u8 rgb, f64 error, u64 track
+  length L; L × (u32 image id, u32 point2D index).
+- COLMAP 4.x also writes ``rigs`` (sensor_from_rig poses) and ``frames`` (rig_from_world
+  poses). ``images`` still holds every image's composed cam_from_world and camera id, so
+  reading ignores rigs/frames; rescaling scales their translations too.
+
+The readers are written here with ``struct``/numpy rather than pycolmap so that every
+problem becomes one clear ``InputError`` line and rescaled copies are byte-for-byte lossless.
+"""
+
+from __future__ import annotations
+
+import array
+import logging
+import math
+import re
+import shutil
+import struct
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from functools import cache
+from itertools import islice
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+import pycolmap
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from sfm_laserscale.errors import InputError
+from sfm_laserscale.geometry import rotmat_from_qvec
+from sfm_laserscale.model import (
+    CAMERA_MODEL_IDS,
+    CAMERA_MODEL_NAMES,
+    CAMERA_MODEL_NUM_PARAMS,
+    INVALID_POINT3D_ID,
+    Camera,
+    Image,
+    Pose,
+    SparseModel,
+)
+
+logger = logging.getLogger(__name__)
+
+MODEL_STEMS = ("cameras", "images", "points3D")
+RIG_STEMS = ("rigs", "frames")  # COLMAP >= 3.12 / 4.x
+_FORMATS = {".bin": "colmap-binary", ".txt": "colmap-text"}
+
+_U64 = struct.Struct("<Q")
+_U32 = struct.Struct("<I")
+_CAMERA_HEAD = struct.Struct("<IiQQ")  # camera_id, model_id, width, height
+_IMAGE_HEAD = struct.Struct("<I7dI")  # image_id, qw qx qy qz tx ty tz, camera_id
+_IMAGE_TVEC_AT = 4 + 4 * 8  # byte offset of tx inside an images.bin record
+_POINT_HEAD_SIZE = 51  # u64 id, 3 f64 xyz, 3 u8 rgb, f64 error, u64 track length
+_POINT_TRACK_LEN_AT = 43
+_OBS_DTYPE = np.dtype([("x", "<f8"), ("y", "<f8"), ("point3D_id", "<u8")])  # 24 bytes
+_TRACK_DTYPE = np.dtype([("image_id", "<u4"), ("point2D_idx", "<u4")])  # 8 bytes
+_POINT_HEAD_DTYPE = np.dtype(
+    [("id", "<u8"), ("xyz", "<f8", (3,)), ("rgb", "u1", (3,)), ("error", "<f8"),
+     ("track_length", "<u8")]
+)  # packed: 51 bytes
+_CHUNK_ROWS = 1 << 16  # rows per gather/scatter block (bounds the index matrices' memory)
+_TOKEN = re.compile(rb"\S+")
+
+I64 = NDArray[np.int64]
+T = TypeVar("T")
+F64 = NDArray[np.float64]
+
+
+# --------------------------------------------------------------------------- camera models
+
+
+@cache
+def _pycolmap_models() -> dict[str, tuple[int, int]]:
+    """Model name -> (id, number of params) for every model pycolmap knows."""
+    table: dict[str, tuple[int, int]] = {}
+    for name, model_id in pycolmap.CameraModelId.__members__.items():
+        if name == "INVALID":
+            continue
+        try:
+            cam = pycolmap.Camera.create_from_model_id(0, model_id, 1.0, 1, 1)
+            table[name] = (int(model_id), len(cam.params))
+        except Exception:  # a model pycolmap cannot build stays unknown
+            continue
+    return table
+
+
+def camera_model_num_params(name: str) -> int | None:
+    """Number of parameters of a COLMAP camera model, or None if unknown."""
+    if name in CAMERA_MODEL_NUM_PARAMS:
+        return CAMERA_MODEL_NUM_PARAMS[name]
+    entry = _pycolmap_models().get(name)  # newer models (e.g. SIMPLE_FISHEYE) than model.py
+    return None if entry is None else entry[1]
+
+
+def camera_model_name(model_id: int) -> str | None:
+    """COLMAP camera model name for a binary model id, or None if unknown."""
+    if model_id in CAMERA_MODEL_NAMES:
+        return CAMERA_MODEL_NAMES[model_id]
+    for name, (mid, _) in _pycolmap_models().items():
+        if mid == model_id:
+            return name
+    return None
+
+
+def _camera_model_id(name: str) -> int:
+    """Binary model id of a camera model name (ValueError if unknown)."""
+    if name in CAMERA_MODEL_IDS:
+        return CAMERA_MODEL_IDS[name]
+    if name in _pycolmap_models():
+        return _pycolmap_models()[name][0]
+    raise ValueError(f"unknown COLMAP camera model {name!r}")
+
+
+# --------------------------------------------------------------------------- folder layout
+
+
+def _existing(folder: Path, suffix: str) -> list[str]:
+    return [s for s in MODEL_STEMS if (folder / f"{s}{suffix}").is_file()]
+
+
+def detect_colmap_format(path: str | Path) -> str:
+    """``"colmap-binary"`` or ``"colmap-text"`` for a model folder (binary wins if both)."""
+    folder = Path(path)
+    if not folder.exists():
+        raise InputError("COLMAP model folder not found", folder)
+    if not folder.is_dir():
+        raise InputError(
+            "not a folder (expected a COLMAP model folder with cameras/images/points3D "
+            ".bin or .txt)", folder)
+    found = {suffix: _existing(folder, suffix) for suffix in _FORMATS}
+    for suffix, fmt in _FORMATS.items():
+        if len(found[suffix]) == len(MODEL_STEMS):
+            return fmt
+    suffix = max(_FORMATS, key=lambda k: len(found[k]))
+    if found[suffix]:
+        missing = [f"{s}{suffix}" for s in MODEL_STEMS if s not in found[suffix]]
+        raise InputError(f"incomplete COLMAP model: missing {', '.join(missing)}", folder)
+    hint = [p.name for p in sorted(folder.iterdir()) if p.is_dir() and _is_model_dir(p)]
+    more = f" (a model is in subfolder {hint[0]!r})" if hint else ""
+    raise InputError(
+        f"no COLMAP model here: cameras, images and points3D .bin or .txt not found{more}",
+        folder)
+
+
+def _is_model_dir(folder: Path) -> bool:
+    return any(len(_existing(folder, s)) == len(MODEL_STEMS) for s in _FORMATS)
+
+
+# --------------------------------------------------------------------------- byte helpers
+
+
+def _gather_rows(u8: NDArray[np.uint8], starts: I64, width: int) -> NDArray[np.uint8]:
+    """(n, width) bytes copied from ``u8[starts[i] : starts[i] + width]`` (vectorised)."""
+    out = np.empty((len(starts), width), dtype=np.uint8)
+    cols = np.arange(width, dtype=np.int64)
+    for a in range(0, len(starts), _CHUNK_ROWS):
+        out[a:a + _CHUNK_ROWS] = u8[starts[a:a + _CHUNK_ROWS, None] + cols]
+    return out
+
+
+def _scatter_rows(u8: NDArray[np.uint8], starts: I64, rows: NDArray[np.uint8]) -> None:
+    """Write ``rows[i]`` (n, width) bytes at ``u8[starts[i]:]`` (vectorised)."""
+    cols = np.arange(rows.shape[1], dtype=np.int64)
+    for a in range(0, len(starts), _CHUNK_ROWS):
+        u8[starts[a:a + _CHUNK_ROWS, None] + cols] = rows[a:a + _CHUNK_ROWS]
+
+
+def _scale_f64_triplets(out: bytearray, starts: I64, scale: float) -> None:
+    """Multiply in place the three little-endian doubles at each byte offset in ``starts``."""
+    if len(starts) == 0:
+        return
+    u8 = np.frombuffer(out, dtype=np.uint8)
+    vals = _gather_rows(u8, starts, 24).view("<f8") * scale
+    _scatter_rows(u8, starts, np.ascontiguousarray(vals).view(np.uint8).reshape(-1, 24))
+
+
+class _Cursor:
+    """Bounds-checked reads over a binary model file; every failure is an InputError."""
+
+    def __init__(self, data: bytes, path: Path) -> None:
+        self.data, self.path, self.pos = data, path, 0
+
+    def fail(self, what: str) -> InputError:
+        return InputError(
+            f"truncated or corrupt file: it ends at byte {len(self.data)} while reading {what}",
+            self.path)
+
+    def take(self, n: int, what: str) -> int:
+        """Skip n bytes; return where they start."""
+        if n < 0 or self.pos + n > len(self.data):
+            raise self.fail(what)
+        start, self.pos = self.pos, self.pos + n
+        return start
+
+    def unpack(self, st: struct.Struct, what: str) -> tuple[Any, ...]:
+        return st.unpack_from(self.data, self.take(st.size, what))
+
+    def count(self, what: str, min_record_bytes: int) -> int:
+        """Leading u64 record count, checked against the bytes that follow."""
+        (n,) = self.unpack(_U64, f"the number of {what}")
+        room = (len(self.data) - self.pos) // max(min_record_bytes, 1)
+        if n > room:
+            raise InputError(
+                f"truncated or corrupt file: header says {n} {what} but the file "
+                f"({len(self.data)} bytes) can hold at most {room}", self.path)
+        return int(n)
+
+    def cstring(self, what: str) -> str:
+        end = self.data.find(b"\0", self.pos)
+        if end < 0:
+            raise self.fail(what)
+        raw, self.pos = self.data[self.pos:end], end + 1
+        return raw.decode("utf-8", errors="surrogateescape")
+
+    def finish(self) -> None:
+        extra = len(self.data) - self.pos
+        if extra:
+            raise InputError(
+                f"corrupt file: {extra} unexpected bytes after the last record "
+                "(trailing garbage or a wrong record count)", self.path)
+
+
+# --------------------------------------------------------------------------- binary parsing
+
+
+@dataclass(frozen=True)
+class _ImageRecord:
+    image_id: int
+    qvec: tuple[float, float, float, float]
+    tvec: tuple[float, float, float]
+    camera_id: int
+    name: str
+    start: int  # byte offset of the record
+    obs_start: int  # byte offset of the first (x, y, point3D id) observation
+    num_points2d: int
+
+
+def _parse_cameras_bin(data: bytes, path: Path) -> dict[int, Camera]:
+    cur = _Cursor(data, path)
+    n = cur.count("cameras", _CAMERA_HEAD.size)
+    cameras: dict[int, Camera] = {}
+    for i in range(n):
+        what = f"camera {i + 1} of {n}"
+        cam_id, model_id, width, height = cur.unpack(_CAMERA_HEAD, what)
+        name = camera_model_name(model_id)
+        if name is None:
+            raise InputError(f"corrupt file: unknown camera model id {model_id} in {what}", path)
+        n_params = camera_model_num_params(name)
+        assert n_params is not None  # a known name always has a parameter count
+        at = cur.take(8 * n_params, f"the {n_params} parameters of {what} ({name})")
+        params = np.frombuffer(data, "<f8", n_params, at).astype(np.float64)
+        _put_unique(cameras, cam_id, Camera(cam_id, name, int(width), int(height), params),
+                    "camera", path)
+    cur.finish()
+    return cameras
+
+
+def _parse_images_bin(data: bytes, path: Path) -> list[_ImageRecord]:
+    cur = _Cursor(data, path)
+    n = cur.count("images", _IMAGE_HEAD.size + 1 + 8)
+    records = []
+    for i in range(n):
+        what = f"image {i + 1} of {n}"
+        start = cur.pos
+        image_id, qw, qx, qy, qz, tx, ty, tz, cam_id = cur.unpack(_IMAGE_HEAD, what)
+        name = cur.cstring(f"the name of {what}")
+        (npts,) = cur.unpack(_U64, f"the number of observations of {what} ({name})")
+        obs = cur.take(24 * npts, f"the {npts} observations of {what} ({name})")
+        records.append(_ImageRecord(image_id, (qw, qx, qy, qz), (tx, ty, tz), cam_id, name,
+                                    start, obs, int(npts)))
+    cur.finish()
+    return records
+
+
+def _points3d_offsets(data: bytes, path: Path) -> I64:
+    """Byte offset of every points3D.bin record: one tight pass over the track lengths.
+
+    Records have variable length, so each offset depends on the previous one; this single
+    ``struct`` pass (about 0.5 s per million points) is the only per-point Python loop, all
+    field reads and writes are then vectorised.
+    """
+    cur = _Cursor(data, path)
+    n = cur.count("3D points", _POINT_HEAD_SIZE)
+    offsets = array.array("q")
+    append, unpack, pos = offsets.append, _U64.unpack_from, cur.pos
+    try:
+        for _ in range(n):
+            append(pos)
+            pos += _POINT_HEAD_SIZE + 8 * unpack(data, pos + _POINT_TRACK_LEN_AT)[0]
+    except (struct.error, OverflowError):
+        raise cur.fail(f"3D point {len(offsets)} of {n}") from None
+    if pos > len(data):
+        raise cur.fail(f"the track of 3D point {n} of {n}")
+    cur.pos = pos
+    cur.finish()
+    return np.frombuffer(offsets, dtype=np.int64).copy()
+
+
+def _parse_frames_bin(data: bytes, path: Path) -> list[int]:
+    """Byte offsets of every frame's rig_from_world translation (COLMAP 4.x frames.bin)."""
+    cur = _Cursor(data, path)
+    n = cur.count("frames", 4 + 4 + 56 + 4)
+    t_offsets = []
+    for i in range(n):
+        what = f"frame {i + 1} of {n}"
+        start = cur.take(4 + 4 + 56, what)
+        t_offsets.append(start + 8 + 32)
+        (n_data,) = cur.unpack(_U32, f"the number of data ids of {what}")
+        cur.take(16 * n_data, f"the data ids of {what}")
+    cur.finish()
+    return t_offsets
+
+
+def _parse_rigs_bin(data: bytes, path: Path) -> list[int]:
+    """Byte offsets of every sensor_from_rig translation (COLMAP 4.x rigs.bin)."""
+    cur = _Cursor(data, path)
+    n = cur.count("rigs", 8)
+    t_offsets = []
+    for i in range(n):
+        what = f"rig {i + 1} of {n}"
+        _, n_sensors = cur.unpack(struct.Struct("<II"), what)
+        if n_sensors > 0:
+            cur.take(8, f"the reference sensor of {what}")
+        for j in range(max(n_sensors - 1, 0)):
+            cur.take(8, f"sensor {j + 2} of {what}")
+            (has_pose,) = cur.unpack(struct.Struct("<B"), f"sensor {j + 2} of {what}")
+            if has_pose:
+                t_offsets.append(cur.take(56, f"the pose of sensor {j + 2} of {what}") + 32)
+    cur.finish()
+    return t_offsets
+
+
+def _read_binary(folder: Path) -> SparseModel:
+    cameras = _parse_cameras_bin((folder / "cameras.bin").read_bytes(), folder / "cameras.bin")
+    img_path = folder / "images.bin"
+    img_data = img_path.read_bytes()
+    images: dict[int, Image] = {}
+    for r in _parse_images_bin(img_data, img_path):
+        obs = np.frombuffer(img_data, _OBS_DTYPE, r.num_points2d, r.obs_start)
+        xy = np.column_stack([obs["x"], obs["y"]]).astype(np.float64).reshape(-1, 2)
+        pose = _pose(r.qvec, r.tvec, img_path, f"image {r.image_id} ({r.name})")
+        image = Image(r.image_id, r.name, r.camera_id, pose, xy,
+                      obs["point3D_id"].astype(np.uint64))
+        _put_unique(images, r.image_id, image, "image", img_path)
+    pts_path = folder / "points3D.bin"
+    pts_data = pts_path.read_bytes()
+    offsets = _points3d_offsets(pts_data, pts_path)
+    u8 = np.frombuffer(pts_data, dtype=np.uint8)
+    ids = _gather_rows(u8, offsets, 8).view("<u8").reshape(-1).astype(np.uint64)
+    xyz = _gather_rows(u8, offsets + 8, 24).view("<f8").reshape(-1, 3).astype(np.float64)
+    return SparseModel(cameras, images, ids, xyz, source_format="colmap-binary")
+
+
+# --------------------------------------------------------------------------- text parsing
+
+
+def _line_error(path: Path, lineno: int, problem: str, line: bytes) -> InputError:
+    text = line.strip().decode("utf-8", errors="replace")
+    snippet = text if len(text) <= 60 else text[:57] + "..."
+    return InputError(f"line {lineno}: {problem}: {snippet!r}", path)
+
+
+def _is_data(line: bytes) -> bool:
+    s = line.strip()
+    return bool(s) and not s.startswith(b"#")
+
+
+def _text_lines(path: Path) -> list[bytes]:
+    """Lines of a text file with their line endings (exact bytes)."""
+    return path.read_bytes().splitlines(keepends=True)
+
+
+def _image_lines(lines: Iterable[bytes]) -> Iterator[tuple[int, bytes, str]]:
+    """(line number, line, role) for images.txt; role is ``skip``, ``pose`` or ``points``.
+
+    As in COLMAP, the line after a pose line is always its observation line, even if blank.
+    """
+    after_pose = False
+    for lineno, line in enumerate(lines, start=1):
+        if after_pose:
+            after_pose = False
+            yield lineno, line, "points"
+        elif _is_data(line):
+            after_pose = True
+            yield lineno, line, "pose"
+        else:
+            yield lineno, line, "skip"
+
+
+def _parse_camera_line(line: bytes, path: Path, lineno: int) -> Camera:
+    tok = line.split()
+    try:
+        cam_id, model = int(tok[0]), tok[1].decode("ascii")
+        width, height = int(tok[2]), int(tok[3])
+        params = np.array([float(t) for t in tok[4:]], dtype=np.float64)
+    except (IndexError, ValueError, UnicodeDecodeError):
+        raise _line_error(path, lineno, "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]",
+                          line) from None
+    n_params = camera_model_num_params(model)
+    if n_params is None:
+        raise _line_error(path, lineno, f"unknown camera model {model!r}", line)
+    if len(params) != n_params:
+        raise _line_error(
+            path, lineno, f"{model} needs {n_params} parameters, found {len(params)}", line)
+    return Camera(cam_id, model, width, height, params)
+
+
+def _read_cameras_text(path: Path) -> dict[int, Camera]:
+    cameras: dict[int, Camera] = {}
+    for lineno, line in enumerate(_text_lines(path), start=1):
+        if _is_data(line):
+            cam = _parse_camera_line(line, path, lineno)
+            _put_unique(cameras, cam.camera_id, cam, "camera", path, lineno)
+    return cameras
+
+
+def _parse_pose_line(line: bytes, path: Path, lineno: int) -> tuple[int, Pose, int, str]:
+    tok = line.split(maxsplit=9)
+    try:
+        image_id, camera_id = int(tok[0]), int(tok[8])
+        q = tuple(float(v) for v in tok[1:5])
+        t = tuple(float(v) for v in tok[5:8])
+        name = tok[9].strip().decode("utf-8", errors="surrogateescape")
+    except (IndexError, ValueError):
+        raise _line_error(path, lineno, "expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME",
+                          line) from None
+    return image_id, _pose(q, t, path, f"line {lineno}"), camera_id, name
+
+
+def _parse_points2d_line(line: bytes, path: Path, lineno: int) -> tuple[F64, NDArray[np.uint64]]:
+    tok = line.split()
+    if len(tok) % 3:
+        raise _line_error(path, lineno, "expected (X Y POINT3D_ID) triplets", line)
+    try:
+        arr = np.array(tok, dtype=np.bytes_).reshape(-1, 3)
+        xy = arr[:, :2].astype(np.float64)
+        ids = arr[:, 2].astype(np.int64)  # -1 (no 3D point) becomes 2^64 - 1 below
+    except (ValueError, OverflowError):
+        raise _line_error(path, lineno, "cannot parse (X Y POINT3D_ID) triplets", line) from None
+    if np.any(ids < -1):
+        raise _line_error(path, lineno, "negative POINT3D_ID other than -1", line)
+    return xy.reshape(-1, 2), ids.view(np.uint64)
+
+
+def _read_images_text(path: Path) -> dict[int, Image]:
+    lines = _text_lines(path)
+    images: dict[int, Image] = {}
+    head: tuple[int, Pose, int, str, int] | None = None
+    for lineno, line, kind in _image_lines(lines):
+        if kind == "pose":
+            head = (*_parse_pose_line(line, path, lineno), lineno)
+        elif kind == "points":
+            assert head is not None  # a points line always follows a pose line
+            xy, ids = _parse_points2d_line(line, path, lineno)
+            _add_text_image(images, head, xy, ids, path)
+            head = None
+    if head is not None:  # last pose line without an observation line: no observations
+        _add_text_image(images, head, np.zeros((0, 2)), np.zeros(0, np.uint64), path)
+    return images
+
+
+def _add_text_image(images: dict[int, Image], head: tuple[int, Pose, int, str, int],
+                    xy: F64, ids: NDArray[np.uint64], path: Path) -> None:
+    image_id, pose, camera_id, name, lineno = head
+    _put_unique(images, image_id, Image(image_id, name, camera_id, pose, xy, ids),
+                "image", path, lineno)
+
+
+def _parse_point_line(line: bytes, path: Path, lineno: int) -> tuple[int, float, float, float]:
+    tok = line.split()
+    if len(tok) < 8 or len(tok) % 2:
+        raise _line_error(path, lineno, "expected POINT3D_ID X Y Z R G B ERROR TRACK[] "
+                          "(IMAGE_ID POINT2D_IDX pairs)", line)
+    try:
+        pid, x, y, z = int(tok[0]), float(tok[1]), float(tok[2]), float(tok[3])
+        ok = all(0 <= int(c) <= 255 for c in tok[4:7]) and math.isfinite(float(tok[7]))
+    except ValueError:
+        ok = False
+    track_ok = len(tok) == 8 or b"".join(tok[8:]).isdigit()  # unsigned integers only
+    if not (ok and track_ok):
+        raise _line_error(path, lineno, "cannot parse POINT3D_ID X Y Z R G B ERROR TRACK[]",
+                          line)
+    if pid < 0:
+        raise _line_error(path, lineno, "negative POINT3D_ID", line)
+    return pid, x, y, z
+
+
+def _read_points_text(path: Path) -> tuple[NDArray[np.uint64], F64]:
+    rows = [_parse_point_line(line, path, n)
+            for n, line in enumerate(_text_lines(path), start=1) if _is_data(line)]
+    if not rows:
+        return np.zeros(0, np.uint64), np.zeros((0, 3))
+    ids = np.array([r[0] for r in rows], dtype=np.uint64)
+    xyz = np.array([r[1:] for r in rows], dtype=np.float64).reshape(-1, 3)
+    return ids, xyz
+
+
+def _read_text(folder: Path) -> SparseModel:
+    cameras = _read_cameras_text(folder / "cameras.txt")
+    images = _read_images_text(folder / "images.txt")
+    ids, xyz = _read_points_text(folder / "points3D.txt")
+    return SparseModel(cameras, images, ids, xyz, source_format="colmap-text")
+
+
+# --------------------------------------------------------------------------- checks
+
+
+def _put_unique(table: dict[int, T], key: int, value: T, what: str, path: Path,
+                lineno: int | None = None) -> None:
+    if key in table:
+        where = f"line {lineno}: " if lineno else ""
+        raise InputError(f"{where}duplicate {what} id {key}", path)
+    table[key] = value
+
+
+def _pose(q: tuple[float, ...], t: tuple[float, ...], path: Path, where: str) -> Pose:
+    qv, tv = np.array(q, dtype=np.float64), np.array(t, dtype=np.float64)
+    norm = float(np.linalg.norm(qv))
+    if not (np.all(np.isfinite(qv)) and np.all(np.isfinite(tv))) or norm < 1e-12:
+        raise InputError(f"{where}: invalid pose (quaternion {q}, translation {t})", path)
+    return Pose(rotmat_from_qvec(qv), tv)
+
+
+def _check_model(model: SparseModel, folder: Path, suffix: str) -> None:
+    """Cross-file consistency: cameras exist, observed 3D points exist, model not empty."""
+    images_file = folder / f"images{suffix}"
+    if not model.images:
+        raise InputError("empty model: no registered images", images_file)
+    if len(np.unique(model.point3D_ids)) != len(model.point3D_ids):
+        raise InputError("duplicate 3D point ids", folder / f"points3D{suffix}")
+    known = np.sort(model.point3D_ids)
+    for im in model.images.values():
+        if im.camera_id not in model.cameras:
+            raise InputError(
+                f"image {im.image_id} ({im.name}) refers to camera {im.camera_id}, "
+                f"which is not in cameras{suffix}", images_file)
+        obs = im.point3D_ids[im.point3D_ids != INVALID_POINT3D_ID]
+        pos = np.searchsorted(known, obs)
+        bad = (pos >= len(known)) | (known[np.minimum(pos, len(known) - 1)] != obs)
+        if np.any(bad):
+            raise InputError(
+                f"image {im.image_id} ({im.name}) observes 3D point {int(obs[bad][0])}, "
+                f"which is not in points3D{suffix}", images_file)
+
+
+def read_colmap_model(path: str | Path) -> SparseModel:
+    """Read a COLMAP sparse model folder (binary or text, COLMAP 3.x or 4.x)."""
+    folder = Path(path)
+    fmt = detect_colmap_format(folder)
+    suffix = ".bin" if fmt == "colmap-binary" else ".txt"
+    try:
+        model = _read_binary(folder) if suffix == ".bin" else _read_text(folder)
+    except OSError as e:
+        raise InputError(f"cannot read model file: {e.strerror}", e.filename or folder) from e
+    _check_model(model, folder, suffix)
+    logger.info("read %s model %s: %d cameras, %d images, %d points", fmt, folder,
+                len(model.cameras), len(model.images), len(model.points_xyz))
+    return model
+
+
+# --------------------------------------------------------------------------- lossless rescale
+
+
+def _check_scale(scale: float) -> float:
+    s = float(scale)
+    if not math.isfinite(s) or s <= 0:
+        raise InputError(f"scale must be a positive finite number, got {scale!r}")
+    return s
+
+
+def _scale_images_bin(data: bytes, path: Path, s: float) -> bytes:
+    out = bytearray(data)
+    starts = np.array([r.start + _IMAGE_TVEC_AT for r in _parse_images_bin(data, path)],
+                      dtype=np.int64)
+    _scale_f64_triplets(out, starts, s)
+    return bytes(out)
+
+
+def _scale_points3d_bin(data: bytes, path: Path, s: float) -> bytes:
+    out = bytearray(data)
+    _scale_f64_triplets(out, _points3d_offsets(data, path) + 8, s)
+    return bytes(out)
+
+
+def _scale_frames_bin(data: bytes, path: Path, s: float) -> bytes:
+    out = bytearray(data)
+    _scale_f64_triplets(out, np.array(_parse_frames_bin(data, path), dtype=np.int64), s)
+    return bytes(out)
+
+
+def _scale_rigs_bin(data: bytes, path: Path, s: float) -> bytes:
+    out = bytearray(data)
+    _scale_f64_triplets(out, np.array(_parse_rigs_bin(data, path), dtype=np.int64), s)
+    return bytes(out)
+
+
+def _fmt(v: float) -> bytes:
+    """Shortest text that reads back as exactly this double."""
+    return repr(float(v)).encode("ascii")
+
+
+def _scale_tokens(line: bytes, first: int, s: float, path: Path, lineno: int) -> bytes:
+    """Scale the 3 whitespace-separated fields at token index ``first..first+2``; keep all
+    other bytes (separators, other fields, line ending) as they are."""
+    spans = [m.span() for m in islice(_TOKEN.finditer(line), first + 3)]
+    if len(spans) < first + 3:
+        raise _line_error(path, lineno, f"expected at least {first + 3} fields", line)
+    parts, last = [], 0
+    for a, b in spans[first:]:
+        try:
+            v = float(line[a:b])
+        except ValueError:
+            raise _line_error(path, lineno, f"field {line[a:b]!r} is not a number",
+                              line) from None
+        parts += [line[last:a], _fmt(v * s)]
+        last = b
+    parts.append(line[last:])
+    return b"".join(parts)
+
+
+def _scale_text_fixed(first: int) -> Callable[[bytes, Path, float], bytes]:
+    """Rescaler for a text file whose data lines hold a translation at token ``first``."""
+
+    def scale(data: bytes, path: Path, s: float) -> bytes:
+        out = []
+        for lineno, line in enumerate(data.splitlines(keepends=True), start=1):
+            out.append(_scale_tokens(line, first, s, path, lineno) if _is_data(line) else line)
+        return b"".join(out)
+
+    return scale
+
+
+def _scale_images_txt(data: bytes, path: Path, s: float) -> bytes:
+    lines = data.splitlines(keepends=True)
+    out = []
+    for lineno, line, kind in _image_lines(lines):
+        out.append(_scale_tokens(line, 5, s, path, lineno) if kind == "pose" else line)
+    return b"".join(out)
+
+
+def _rig_translation_tokens(tok: list[bytes], path: Path, lineno: int, line: bytes) -> list[int]:
+    """Token indices where each posed sensor's TX starts on a rigs.txt line."""
+    try:
+        n_sensors, k, firsts = int(tok[1]), 4, []
+        for _ in range(max(n_sensors - 1, 0)):
+            if tok[k + 2] == b"1":
+                firsts.append(k + 3 + 4)
+                k += 10
+            else:
+                k += 3
+    except (IndexError, ValueError):
+        raise _line_error(path, lineno, "cannot parse rig line", line) from None
+    if k > len(tok) or (n_sensors == 0 and len(tok) != 2):
+        raise _line_error(path, lineno, "cannot parse rig line", line)
+    return firsts
+
+
+def _scale_rigs_txt(data: bytes, path: Path, s: float) -> bytes:
+    out = []
+    for lineno, line in enumerate(data.splitlines(keepends=True), start=1):
+        if _is_data(line):
+            for first in _rig_translation_tokens(line.split(), path, lineno, line):
+                line = _scale_tokens(line, first, s, path, lineno)
+        out.append(line)
+    return b"".join(out)
+
+
+_RESCALERS: dict[str, Callable[[bytes, Path, float], bytes]] = {
+    "images.bin": _scale_images_bin,
+    "points3D.bin": _scale_points3d_bin,
+    "frames.bin": _scale_frames_bin,
+    "rigs.bin": _scale_rigs_bin,
+    "images.txt": _scale_images_txt,
+    "points3D.txt": _scale_text_fixed(1),  # POINT3D_ID X Y Z ...
+    "frames.txt": _scale_text_fixed(6),  # FRAME_ID RIG_ID QW QX QY QZ TX TY TZ ...
+    "rigs.txt": _scale_rigs_txt,
+}
+
+
+def write_scaled_colmap_model(src_dir: str | Path, dst_dir: str | Path, scale: float) -> list[Path]:
+    """Copy a model folder with every translation and 3D point multiplied by ``scale``.
+
+    Lossless and in the input's format: only the tvec / xyz doubles (binary) or those
+    fields (text, printed with ``repr`` precision) change; every other byte and every other
+    file of the folder is copied as is. Model files of both formats are rescaled when a
+    folder holds both. Returns the written files.
+    """
+    src, dst = Path(src_dir), Path(dst_dir)
+    s = _check_scale(scale)
+    detect_colmap_format(src)
+    if dst.exists() and dst.resolve() == src.resolve():
+        raise InputError("refusing to write the rescaled model over its source", dst)
+    dst.mkdir(parents=True, exist_ok=True)
+    written = []
+    for f in sorted(src.iterdir()):
+        if not f.is_file():
+            continue
+        target = dst / f.name
+        rescale = _RESCALERS.get(f.name)
+        if rescale is None:
+            shutil.copyfile(f, target)
+        else:
+            target.write_bytes(rescale(f.read_bytes(), f, s))
+        written.append(target)
+    logger.info("wrote model rescaled by %.9g to %s (%d files)", s, dst, len(written))
+    return written
+
+
+# --------------------------------------------------------------------------- writers
+
+
+@dataclass(frozen=True)
+class _Tracks:
+    """Every point's track rebuilt from the observations, points in increasing id order."""
+
+    order: I64  # (M,) rows of ``model.points_xyz`` sorted by point id
+    lengths: I64  # (M,) track length of point ``order[k]``
+    image_ids: NDArray[np.uint32]  # (T,) grouped by k, then sorted by image id, index
+    point2d_idx: NDArray[np.uint32]  # (T,)
+
+
+def _tracks(model: SparseModel) -> _Tracks:
+    """Track elements (image id, point2D index) of every 3D point, from the images."""
+    order = np.argsort(model.point3D_ids, kind="stable").astype(np.int64)
+    sorted_ids = model.point3D_ids[order]
+    ks, img, idx = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for im in model.images.values():
+        j = np.flatnonzero(im.point3D_ids != INVALID_POINT3D_ID)
+        if len(order) == 0 or len(j) == 0:
+            continue
+        k = np.minimum(np.searchsorted(sorted_ids, im.point3D_ids[j]), len(order) - 1)
+        found = sorted_ids[k] == im.point3D_ids[j]
+        ks.append(k[found])
+        img.append(np.full(int(found.sum()), im.image_id, dtype=np.int64))
+        idx.append(j[found])
+    k_all, i_all, j_all = np.concatenate(ks), np.concatenate(img), np.concatenate(idx)
+    srt = np.lexsort((j_all, i_all, k_all))
+    lengths = np.bincount(k_all, minlength=len(order)).astype(np.int64)
+    return _Tracks(order, lengths, i_all[srt].astype(np.uint32), j_all[srt].astype(np.uint32))
+
+
+def _sorted_images(model: SparseModel) -> list[Image]:
+    return [model.images[k] for k in sorted(model.images)]
+
+
+def _qvec_wxyz(R: F64) -> F64:
+    """Unit quaternion (w, x, y, z), w >= 0, of rotation matrix R (COLMAP's convention).
+
+    scipy, not ``geometry.qvec_from_rotmat``: that one returns the conjugate quaternion
+    (the inverse rotation) at the time of writing.
+    """
+    x, y, z, w = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
+    q = np.array([w, x, y, z], dtype=np.float64)
+    return q if q[0] >= 0 else -q
+
+
+def _qt(im: Image) -> tuple[F64, F64]:
+    return _qvec_wxyz(im.cam_from_world.R), np.asarray(im.cam_from_world.t, np.float64)
+
+
+def write_colmap_model_text(model: SparseModel, dst_dir: str | Path) -> list[Path]:
+    """Write ``model`` as a COLMAP 3.x text model (colour 128 grey, error 0); returns files."""
+    dst = Path(dst_dir)
+    dst.mkdir(parents=True, exist_ok=True)
+    cam_lines = ["# Camera list with one line of data per camera:\n",
+                 "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n",
+                 f"# Number of cameras: {len(model.cameras)}\n"]
+    for cid in sorted(model.cameras):
+        c = model.cameras[cid]
+        params = " ".join(repr(float(p)) for p in c.params)
+        cam_lines.append(f"{cid} {c.model} {c.width} {c.height} {params}\n")
+    img_lines = ["# Image list with two lines of data per image:\n",
+                 "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n",
+                 "#   POINTS2D[] as (X, Y, POINT3D_ID)\n",
+                 f"# Number of images: {len(model.images)}\n"]
+    for im in _sorted_images(model):
+        q, t = _qt(im)
+        pose = " ".join(repr(float(v)) for v in (*q, *t))
+        img_lines.append(f"{im.image_id} {pose} {im.camera_id} {im.name}\n")
+        ids = im.point3D_ids.astype(np.uint64).view(np.int64)  # 2^64 - 1 prints as -1
+        img_lines.append(" ".join(f"{x!r} {y!r} {p}" for x, y, p in zip(
+            im.xy_px[:, 0].tolist(), im.xy_px[:, 1].tolist(), ids.tolist(), strict=True)) + "\n")
+    tr = _tracks(model)
+    ends = np.cumsum(tr.lengths)
+    pairs = np.column_stack([tr.image_ids, tr.point2d_idx]).astype(str)
+    pt_lines = ["# 3D point list with one line of data per point:\n",
+                "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n",
+                f"# Number of points: {len(model.point3D_ids)}\n"]
+    for k, row in enumerate(tr.order):
+        x, y, z = model.points_xyz[row].tolist()
+        track = " ".join(" ".join(p) for p in pairs[ends[k] - tr.lengths[k]:ends[k]])
+        pt_lines.append(f"{model.point3D_ids[row]} {x!r} {y!r} {z!r} 128 128 128 0 {track}\n")
+    files = {"cameras.txt": cam_lines, "images.txt": img_lines, "points3D.txt": pt_lines}
+    for name, lines in files.items():
+        (dst / name).write_text("".join(lines), encoding="utf-8", errors="surrogateescape")
+    return [dst / name for name in files]
+
+
+def _cameras_bin(model: SparseModel) -> bytes:
+    parts = [_U64.pack(len(model.cameras))]
+    for cid in sorted(model.cameras):
+        c = model.cameras[cid]
+        parts.append(_CAMERA_HEAD.pack(cid, _camera_model_id(c.model), c.width, c.height))
+        parts.append(np.asarray(c.params, dtype="<f8").tobytes())
+    return b"".join(parts)
+
+
+def _images_bin(model: SparseModel) -> bytes:
+    parts = [_U64.pack(len(model.images))]
+    for im in _sorted_images(model):
+        q, t = _qt(im)
+        parts.append(_IMAGE_HEAD.pack(im.image_id, *q.tolist(), *t.tolist(), im.camera_id))
+        parts.append(im.name.encode("utf-8", errors="surrogateescape") + b"\0")
+        obs = np.empty(len(im.xy_px), dtype=_OBS_DTYPE)
+        obs["x"], obs["y"], obs["point3D_id"] = im.xy_px[:, 0], im.xy_px[:, 1], im.point3D_ids
+        parts.append(_U64.pack(len(obs)) + obs.tobytes())
+    return b"".join(parts)
+
+
+def _points3d_bin(model: SparseModel) -> bytes:
+    """points3D.bin bytes, records sorted by id, built with vectorised scatters."""
+    tr = _tracks(model)
+    head = np.zeros(len(tr.order), dtype=_POINT_HEAD_DTYPE)
+    head["id"], head["xyz"] = model.point3D_ids[tr.order], model.points_xyz[tr.order]
+    head["rgb"], head["track_length"] = 128, tr.lengths
+    sizes = _POINT_HEAD_SIZE + 8 * tr.lengths
+    starts = 8 + np.cumsum(sizes) - sizes
+    out = np.zeros(8 + int(sizes.sum()), dtype=np.uint8)
+    out[:8] = np.frombuffer(_U64.pack(len(tr.order)), dtype=np.uint8)
+    _scatter_rows(out, starts, head.view(np.uint8).reshape(-1, _POINT_HEAD_SIZE))
+    firsts = np.cumsum(tr.lengths) - tr.lengths  # first track element of each point
+    rank = np.arange(len(tr.image_ids)) - np.repeat(firsts, tr.lengths)
+    elem_at = np.repeat(starts + _POINT_HEAD_SIZE, tr.lengths) + 8 * rank
+    track = np.empty(len(tr.image_ids), dtype=_TRACK_DTYPE)
+    track["image_id"], track["point2D_idx"] = tr.image_ids, tr.point2d_idx
+    _scatter_rows(out, elem_at.astype(np.int64), track.view(np.uint8).reshape(-1, 8))
+    return out.tobytes()
+
+
+def write_colmap_model_binary(model: SparseModel, dst_dir: str | Path) -> list[Path]:
+    """Write ``model`` as a COLMAP 3.x binary model (colour 128 grey, error 0); returns files."""
+    dst = Path(dst_dir)
+    dst.mkdir(parents=True, exist_ok=True)
+    files = {"cameras.bin": _cameras_bin(model), "images.bin": _images_bin(model),
+             "points3D.bin": _points3d_bin(model)}
+    for name, data in files.items():
+        (dst / name).write_bytes(data)
+    return [dst / name for name in files]
+
+
+# --------------------------------------------------------------------------- hold-out
+
+
+def model_without_images(model: SparseModel, names: Iterable[str]) -> SparseModel:
+    """The model without the named images; 3D points left with < 2 observations are removed
+    (and their remaining observations become INVALID_POINT3D_ID)."""
+    drop = set(names)
+    present = {im.name for im in model.images.values()}
+    missing = sorted(drop - present)
+    if missing:
+        raise InputError(f"cannot hold out images not in the model: {', '.join(missing)}")
+    kept = {k: im for k, im in model.images.items() if im.name not in drop}
+    obs = [im.point3D_ids[im.point3D_ids != INVALID_POINT3D_ID] for im in kept.values()]
+    all_obs = np.concatenate(obs) if obs else np.zeros(0, np.uint64)
+    uniq, counts = np.unique(all_obs, return_counts=True)
+    keep_ids = uniq[counts >= 2]
+    keep_rows = np.isin(model.point3D_ids, keep_ids)
+    images = {}
+    for k, im in kept.items():
+        ids = im.point3D_ids.copy()
+        ids[~np.isin(ids, model.point3D_ids[keep_rows])] = INVALID_POINT3D_ID
+        images[k] = Image(im.image_id, im.name, im.camera_id, im.cam_from_world,
+                          im.xy_px.copy(), ids)
+    return SparseModel(dict(model.cameras), images, model.point3D_ids[keep_rows].copy(),
+                       model.points_xyz[keep_rows].copy(), source_format=model.source_format)

@@ -1,0 +1,110 @@
+"""Laser image discovery and reading (sizes checked against the model's cameras)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from PIL import Image as PILImage
+from PIL import UnidentifiedImageError
+
+from sfm_laserscale.errors import InputError
+from sfm_laserscale.model import Camera, SparseModel
+
+logger = logging.getLogger(__name__)
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".webp"}
+
+
+@dataclass(frozen=True)
+class LaserImage:
+    """A laser image file and the model camera it was taken with."""
+
+    name: str  # file name, the key in spots CSVs and reports
+    path: Path
+    camera: Camera | None  # None when the file is not a readable image (reported, not used)
+
+
+def _expand(paths: Sequence[Path]) -> list[Path]:
+    files: list[Path] = []
+    for p in paths:
+        if p.is_dir():
+            found = sorted(f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
+            if not found:
+                raise InputError("folder holds no images (.jpg, .png, .tif, ...)", p)
+            files += found
+        elif p.exists():
+            files.append(p)
+        else:
+            raise InputError("laser image not found", p)
+    return files
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) from the file header; InputError when it is not a readable image."""
+    try:
+        with PILImage.open(path) as im:
+            return int(im.size[0]), int(im.size[1])
+    except (UnidentifiedImageError, OSError, ValueError):
+        raise InputError("not a readable image", path) from None
+
+
+def camera_for_size(model: SparseModel, width: int, height: int) -> Camera | None:
+    """The model camera of this size used by the most images (None when no camera matches)."""
+    matching = [c for c in model.cameras.values() if (c.width, c.height) == (width, height)]
+    if not matching:
+        return None
+    uses = {
+        c.camera_id: sum(im.camera_id == c.camera_id for im in model.images.values())
+        for c in matching
+    }
+    return max(matching, key=lambda c: uses[c.camera_id])
+
+
+def find_laser_images(paths: Sequence[Path], model: SparseModel) -> tuple[LaserImage, ...]:
+    """Expand files/folders, check each image's size against the model's cameras."""
+    if not paths:
+        raise InputError("no laser images given")
+    found: list[LaserImage] = []
+    unreadable: list[Path] = []
+    for f in _expand(paths):
+        try:
+            w, h = image_size(f)
+        except InputError:
+            unreadable.append(f)
+            continue
+        cam = camera_for_size(model, w, h)
+        if cam is None:
+            sizes = ", ".join(sorted({f"{c.width}x{c.height}" for c in model.cameras.values()}))
+            raise InputError(f"image size {w}x{h} does not match the model's camera ({sizes})", f)
+        found.append(LaserImage(name=f.name, path=f, camera=cam))
+    if not found:  # every file unreadable
+        raise InputError("no readable laser image", unreadable[0] if unreadable else paths[0])
+    for f in unreadable:
+        logger.warning("%s: not a readable image; reported and skipped", f)
+        found.append(LaserImage(name=f.name, path=f, camera=None))
+    names = [li.name for li in found]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise InputError(f"several laser images share the file name {dupes[0]!r}")
+    return tuple(found)
+
+
+def read_rgb(path: Path) -> NDArray[np.uint8]:
+    """(H, W, 3) uint8 RGB; InputError when unreadable."""
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise InputError("not a readable image", path)
+    return np.ascontiguousarray(bgr[:, :, ::-1])
+
+
+def read_gray(path: Path) -> NDArray[np.uint8]:
+    """(H, W) uint8 grey; InputError when unreadable."""
+    gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if gray is None:
+        raise InputError("not a readable image", path)
+    return gray

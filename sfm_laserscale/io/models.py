@@ -1,0 +1,87 @@
+"""One entry point for sparse models and their descriptors, whatever tool wrote them."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sfm_laserscale.errors import InputError
+from sfm_laserscale.io.colmap import read_colmap_model
+from sfm_laserscale.io.colmap_database import read_database_features
+from sfm_laserscale.io.images import IMAGE_SUFFIXES, read_rgb
+from sfm_laserscale.model import ImageFeatures, SparseModel
+from sfm_laserscale.registration import ObservationFeatures, TieOptions, features_from_images
+
+logger = logging.getLogger(__name__)
+ModelFeatures = dict[str, ImageFeatures] | dict[str, ObservationFeatures]
+
+
+class LazyImages(Mapping[str, NDArray[np.uint8]]):
+    """name -> RGB pixels, read when asked for (one image in memory at a time)."""
+
+    def __init__(self, paths: dict[str, Path]) -> None:
+        self._paths = paths
+
+    def __getitem__(self, name: str) -> NDArray[np.uint8]:
+        return read_rgb(self._paths[name])
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._paths)
+
+    def __len__(self) -> int:
+        return len(self._paths)
+
+
+def load_model(path: Path) -> SparseModel:
+    """COLMAP model folder (binary or text); InputError for anything else."""
+    if not path.exists():
+        raise InputError("model not found", path)
+    if path.is_file() and path.suffix.lower() in (".json", ".bin") and "sfm_data" in path.name:
+        raise InputError(
+            "OpenMVG sfm_data input is not supported yet (give a COLMAP model folder)", path
+        )
+    return read_colmap_model(path)
+
+
+def _source_images(model: SparseModel, images_dir: Path) -> dict[str, Path]:
+    if not images_dir.is_dir():
+        raise InputError("images folder not found", images_dir)
+    found: dict[str, Path] = {}
+    for im in model.images.values():
+        p = images_dir / im.name
+        if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file():
+            found[im.name] = p
+    if not found:
+        raise InputError("holds none of the model's images (names as in the model)", images_dir)
+    missing = len(model.images) - len(found)
+    if missing:
+        logger.warning("%d of the model's images are not in %s", missing, images_dir)
+    return found
+
+
+def load_model_features(
+    model: SparseModel,
+    model_path: Path,
+    database: Path | None,
+    images_dir: Path | None,
+    features_dir: Path | None,
+    tie: TieOptions,
+) -> ModelFeatures:
+    """Descriptors of the model's observations: database first, else SIFT re-extracted."""
+    del model_path, features_dir  # used by the OpenMVG reader (regions beside sfm_data.json)
+    names = [im.name for im in model.images.values()]
+    if database is not None:
+        feats = read_database_features(database, names)
+        logger.info("descriptors of %d model images read from %s", len(feats), database)
+        return feats
+    if images_dir is not None:
+        paths = _source_images(model, images_dir)
+        return features_from_images(model, LazyImages(paths), tie)
+    raise InputError(
+        "the model's descriptors are needed: give --database (COLMAP) or --images "
+        "(the model's source images, SIFT is re-extracted)"
+    )

@@ -1,0 +1,331 @@
+"""The scale job: chains readers -> detection -> registration -> ray casting -> methods ->
+fusion -> writers. It owns no maths; each stage is a function of its own module.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sfm_laserscale.detection import DetectionOptions, DetectionResult, detect_spots
+from sfm_laserscale.errors import InputError
+from sfm_laserscale.fusion import FusedScale, FusionOptions, fuse
+from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
+from sfm_laserscale.io.meshes import TriangleMesh, load_mesh
+from sfm_laserscale.io.models import load_model, load_model_features
+from sfm_laserscale.io.spots_csv import read_spots_csv
+from sfm_laserscale.model import Camera, SparseModel, Spot
+from sfm_laserscale.raycast import MeshRaycaster, pixel_rays
+from sfm_laserscale.registration import (
+    DescriptorIndex,
+    IndexOptions,
+    RegistrationOptions,
+    RegistrationResult,
+    SiftOptions,
+    TieOptions,
+    build_descriptor_index,
+    extract_sift,
+    register_image,
+)
+from sfm_laserscale.rig import Rig, load_rig
+from sfm_laserscale.uncertainty import (
+    EstimationOptions,
+    ImageEstimates,
+    ImageObservation,
+    SpotHit,
+    estimate_image,
+)
+
+logger = logging.getLogger(__name__)
+METHODS = ("fcm", "pcm", "direct3d")
+
+
+@dataclass(frozen=True)
+class ScaleInputs:
+    """Paths given to ``scale`` (DESIGN.md §5)."""
+
+    model: Path
+    mesh: Path
+    laser_images: tuple[Path, ...]
+    rig: Path
+    images: Path | None = None
+    database: Path | None = None
+    features: Path | None = None
+    spots: Path | None = None
+
+
+@dataclass(frozen=True)
+class ScaleOptions:
+    """Options of the scale job; each stage's options are nested."""
+
+    method: str = "all"  # fcm | pcm | all (the headline method's candidates)
+    seed: int = 0
+    progress: bool = True
+    overlays: bool = True
+    detection: DetectionOptions = field(default_factory=DetectionOptions)
+    sift: SiftOptions = field(default_factory=SiftOptions)
+    tie: TieOptions = field(default_factory=TieOptions)
+    index: IndexOptions = field(default_factory=IndexOptions)
+    registration: RegistrationOptions = field(default_factory=RegistrationOptions)
+    estimation: EstimationOptions = field(default_factory=EstimationOptions)
+    fusion: FusionOptions = field(default_factory=FusionOptions)
+
+
+@dataclass(frozen=True)
+class LoadedInputs:
+    """Everything read from disk before the per-image work."""
+
+    model: SparseModel
+    mesh: TriangleMesh
+    rig: Rig
+    laser_images: tuple[LaserImage, ...]
+    manual_spots: dict[str, list[Spot]]
+    index: DescriptorIndex
+
+
+@dataclass(frozen=True)
+class ImageRun:
+    """What happened to one laser image (kept whether it worked or not)."""
+
+    name: str
+    path: Path
+    camera: Camera | None
+    registration: RegistrationResult | None
+    detection: DetectionResult | None
+    spots: tuple[Spot, ...]
+    hits: tuple[SpotHit, ...]
+    spot_reasons: dict[str, str]  # laser -> why it has no usable hit
+    estimates: ImageEstimates | None
+    reason: str | None  # why the image gave no estimate, None when it did
+
+
+@dataclass(frozen=True)
+class ScaleResult:
+    """The finished job: headline scale (NaN when none), per-method fusions, per-image runs."""
+
+    success: bool
+    scale: FusedScale
+    methods: dict[str, FusedScale]
+    images: tuple[ImageRun, ...]
+    report: dict[str, Any]
+    out_dir: Path
+    summary: str
+
+
+class Timer:
+    """Wall time per named stage (seconds), summed over calls."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._start = time.perf_counter()
+
+    @contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - t0
+
+    def as_dict(self) -> dict[str, float]:
+        out = {
+            k: round(self.seconds.get(k, 0.0), 4)
+            for k in ("load", "detect", "register", "raycast", "estimate", "write")
+        }
+        out["total"] = round(time.perf_counter() - self._start, 4)
+        return out
+
+
+def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
+    """Read and validate every input; raises InputError on bad input (exit 2)."""
+    rig = load_rig(inputs.rig)
+    model = load_model(inputs.model)
+    mesh = load_mesh(inputs.mesh)
+    laser_images = find_laser_images(inputs.laser_images, model)
+    manual: dict[str, list[Spot]] = {}
+    if inputs.spots is not None:
+        manual = read_spots_csv(inputs.spots, [li.name for li in laser_images], rig.names)
+    features = load_model_features(
+        model, inputs.model, inputs.database, inputs.images, inputs.features, options.tie
+    )
+    index = build_descriptor_index(model, features, options.index)
+    return LoadedInputs(model, mesh, rig, laser_images, manual, index)
+
+
+def _spots_for(
+    image: LaserImage, rgb: np.ndarray, loaded: LoadedInputs, options: ScaleOptions
+) -> tuple[tuple[Spot, ...], DetectionResult | None, dict[str, str]]:
+    manual = loaded.manual_spots.get(image.name)
+    if manual is not None:
+        given = {s.laser for s in manual}
+        missing = {n: "not given in --spots" for n in loaded.rig.names if n not in given}
+        return tuple(manual), None, missing
+    det = detect_spots(rgb, image.camera, loaded.rig, options.detection)
+    return det.spots, det, dict(det.missing)
+
+
+def _cast_spots(
+    spots: Sequence[Spot], image: LaserImage, reg: RegistrationResult, caster: MeshRaycaster
+) -> tuple[tuple[SpotHit, ...], dict[str, str]]:
+    if not spots or reg.cam_from_world is None:
+        return (), {}
+    xy = np.array([[s.x, s.y] for s in spots], dtype=np.float64)
+    origins, dirs = pixel_rays(image.camera, reg.cam_from_world.inverse(), xy)
+    res = caster.cast(origins, dirs)
+    hits: list[SpotHit] = []
+    reasons: dict[str, str] = {}
+    for i, spot in enumerate(spots):
+        if not res.hit[i]:
+            reasons[spot.laser] = "ray through the spot misses the mesh"
+            continue
+        hits.append(
+            SpotHit(
+                laser=spot.laser,
+                xy_px=xy[i],
+                sigma_px=spot.sigma_px,
+                hit_world=res.xyz[i],
+                normal_world=res.normal[i],
+            )
+        )
+    return tuple(hits), reasons
+
+
+def process_image(
+    image: LaserImage,
+    loaded: LoadedInputs,
+    caster: MeshRaycaster,
+    options: ScaleOptions,
+    timer: Timer,
+) -> ImageRun:
+    """Detect, register, cast and estimate for one laser image; failures become reasons."""
+
+    def failed(reason: str, **kw: Any) -> ImageRun:
+        base: dict[str, Any] = dict(
+            name=image.name,
+            path=image.path,
+            camera=image.camera,
+            registration=None,
+            detection=None,
+            spots=(),
+            hits=(),
+            spot_reasons={},
+            estimates=None,
+            reason=reason,
+        )
+        base.update(kw)
+        return ImageRun(**base)
+
+    try:
+        rgb = read_rgb(image.path)
+    except InputError as exc:
+        return failed(f"cannot read image: {exc.problem}")
+    with timer("detect"):
+        spots, det, spot_reasons = _spots_for(image, rgb, loaded, options)
+    with timer("register"):
+        query = extract_sift(rgb, options.sift)
+        reg = register_image(query, image.camera, loaded.index, options.registration)
+    if not reg.success:
+        return failed(
+            reg.reason or "registration failed",
+            registration=reg,
+            detection=det,
+            spots=spots,
+            spot_reasons=spot_reasons,
+        )
+    with timer("raycast"):
+        hits, miss = _cast_spots(spots, image, reg, caster)
+    spot_reasons.update(miss)
+    if not hits:
+        why = "no laser spot found" if not spots else "no spot ray hits the mesh"
+        return failed(why, registration=reg, detection=det, spots=spots, spot_reasons=spot_reasons)
+    obs = ImageObservation(
+        image=image.name,
+        camera=image.camera,
+        cam_from_world=reg.cam_from_world,
+        pose_covariance=reg.covariance,
+        hits=hits,
+    )
+    with timer("estimate"):
+        est = estimate_image(obs, loaded.rig, options.estimation)
+    usable = [e for e in est.estimates if not e.rejected]
+    reason = None if usable else "every estimate of this image was rejected"
+    return ImageRun(
+        name=image.name,
+        path=image.path,
+        camera=image.camera,
+        registration=reg,
+        detection=det,
+        spots=spots,
+        hits=hits,
+        spot_reasons=spot_reasons,
+        estimates=est,
+        reason=reason,
+    )
+
+
+def fuse_methods(
+    runs: Sequence[ImageRun], rig: Rig, options: ScaleOptions
+) -> tuple[FusedScale, dict[str, FusedScale]]:
+    """Fuse every method over the images; pick the headline (FCM when the rig allows, else PCM)."""
+    per_image = [r.estimates for r in runs if r.estimates is not None]
+    fused = {m: fuse(per_image, m, options.fusion) for m in METHODS}
+    order = {"fcm": ["fcm"], "pcm": ["pcm"], "all": ["fcm", "pcm"]}[options.method]
+    if not rig.has_fcm:
+        order = [m for m in order if m != "fcm"] or ["pcm"]
+    headline = next((fused[m] for m in order if np.isfinite(fused[m].value)), fused[order[0]])
+    return headline, fused
+
+
+def run_scale(
+    inputs: ScaleInputs,
+    out_dir: Path,
+    options: ScaleOptions = ScaleOptions(),  # noqa: B008
+    overwrite: bool = False,
+) -> ScaleResult:
+    """The whole ``scale`` command: estimate, fuse and write every output of DESIGN.md §6."""
+    from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
+    from sfm_laserscale.report.writer import build_report, summary_line, write_outputs
+
+    check_output_dir(out_dir, overwrite)
+    timer = Timer()
+    with timer("load"):
+        loaded = load_inputs(inputs, options)
+        caster = MeshRaycaster(loaded.mesh.vertices, loaded.mesh.triangles)
+    runs = [
+        process_image(li, loaded, caster, options, timer)
+        for li in _progress(loaded.laser_images, options.progress, "laser images")
+    ]
+    headline, fused = fuse_methods(runs, loaded.rig, options)
+    success = bool(np.isfinite(headline.value))
+    checks = {
+        "mesh_model_agreement": caster.median_distance(loaded.model.points_xyz)
+        / max(loaded.model.extent, 1e-12)
+    }
+    with staged_output_dir(out_dir, overwrite) as tmp, timer("write"):
+        report = build_report(inputs, options, loaded, runs, headline, fused, checks, timer)
+        write_outputs(tmp, inputs, loaded, runs, headline, report, options, timer)
+    summary = summary_line(headline, runs)
+    return ScaleResult(
+        success=success,
+        scale=headline,
+        methods=fused,
+        images=tuple(runs),
+        report=report,
+        out_dir=out_dir,
+        summary=summary,
+    )
+
+
+def _progress(items: Sequence[Any], enabled: bool, desc: str) -> Iterator[Any]:
+    import sys
+
+    from tqdm import tqdm
+
+    yield from tqdm(items, desc=desc, disable=not enabled or not sys.stderr.isatty(), unit="img")

@@ -1,0 +1,777 @@
+"""Registration of held-out (laser) images into an existing sparse model.
+
+Descriptor index of the model's 3D points, 2D–3D matching, absolute pose with an
+acceptance rule of our own, pose covariance. This is the one module that calls
+pycolmap's SIFT extractor and absolute-pose estimators: pycolmap API drift stays
+here (checked against pycolmap 4.2.1).
+
+Pose covariance parametrisation (``PoseResult.covariance``, 6×6, ours, not pycolmap's)
+    ξ = (ω, δt): ω ∈ R³ a rotation vector in radians, δt ∈ R³ in model units,
+    rotation first. The true ``cam_from_world`` is (R, t) = (Exp(ω) R̂, t̂ + δt):
+    left (camera-frame) perturbation of the rotation, additive perturbation of the
+    translation t (not of the camera centre). Cov = σ̂² (JᵀJ)⁻¹ with J the Jacobian
+    of the inlier reprojections (pixels) with respect to ξ at the refined pose and
+    σ̂² = Σ‖r‖² / (2n − 6) the observed per-axis residual variance of the n inliers
+    (2n − 6 − n_focal when the focal length is refined; then the pose block of the
+    joint covariance is returned, i.e. focal uncertainty is marginalised).
+    Checked by Monte Carlo in tests/test_registration.py.
+
+pycolmap's own covariance (``return_covariance=True``) is *not* returned: it is
+(J̃ᵀJ̃)⁻¹ for unit pixel noise with J̃ the Jacobian corrected by the Cauchy loss
+of the refinement, in Ceres' quaternion tangent space, where the rotation
+increment δ is *half* the rotation vector (R = Exp(2δ) R̂, left) and the
+translation increment is additive; order (rotation, translation). With the loss
+made quadratic, diag(2,2,2,1,1,1)·C·diag(2,2,2,1,1,1) equals our (JᵀJ)⁻¹ (tested);
+with the default Cauchy loss it is neither the unit-noise covariance nor scaled
+to the data, hence our own.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import cv2
+import numpy as np
+import pycolmap
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from sfm_laserscale.errors import InputError
+from sfm_laserscale.model import (
+    INVALID_POINT3D_ID,
+    Camera,
+    Image,
+    ImageFeatures,
+    Pose,
+    SparseModel,
+)
+
+logger = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+DESCRIPTOR_DIM = 128
+
+
+# --------------------------------------------------------------------------- options
+
+
+@dataclass(frozen=True)
+class SiftOptions:
+    """COLMAP SIFT extraction settings (CPU); defaults are COLMAP's."""
+
+    max_num_features: int = 8192  # hard cap on the returned keypoints (largest scales kept)
+    first_octave: int = -1
+    num_octaves: int = 4
+    octave_resolution: int = 3
+    peak_threshold: float = 0.02 / 3
+    edge_threshold: float = 10.0
+    max_num_orientations: int = 2
+    upright: bool = False
+    normalization: str = "L1_ROOT"  # L1_ROOT (COLMAP default, RootSIFT) | L2
+    num_threads: int = -1
+
+
+@dataclass(frozen=True)
+class TieOptions:
+    """Re-extraction of SIFT on model images and tying keypoints to model observations."""
+
+    tie_radius_px: float = 2.0
+    sift: SiftOptions = field(default_factory=SiftOptions)
+
+
+@dataclass(frozen=True)
+class IndexOptions:
+    """Descriptor index of the model's 3D points."""
+
+    max_descriptors_per_point: int = 8  # the ones closest to the point's mean descriptor
+    exact: bool | None = None  # None: exact brute force up to exact_max_pool, else FLANN
+    exact_max_pool: int = 10000
+    flann_trees: int = 4
+    flann_checks: int = 128
+    seed: int = 0  # seeds OpenCV's RNG before the randomised KD-trees are built
+
+
+@dataclass(frozen=True)
+class MatchOptions:
+    """2D–3D descriptor matching."""
+
+    ratio: float = 0.8  # Lowe ratio; second neighbour taken from a different 3D point
+    max_distance: float | None = None  # optional absolute L2 cut (uint8 descriptor units)
+
+
+@dataclass(frozen=True)
+class PoseOptions:
+    """LO-RANSAC P3P + refinement (pycolmap) and our acceptance rule."""
+
+    ransac_max_error_px: float = 12.0  # COLMAP's registrator default
+    ransac_min_inlier_ratio: float = 0.1
+    ransac_confidence: float = 0.99999
+    ransac_max_num_trials: int = 10000
+    loss_scale_px: float = 4.0  # Cauchy loss scale of the refinement (COLMAP: 1), see below
+    refine_focal_length: bool = False
+    seed: int | None = 0  # RANSAC seed; None = non-deterministic
+    min_inliers: int = 30
+    min_inlier_ratio: float = 0.25
+    max_reproj_error_px: float = 4.0  # RMS over inliers
+
+
+@dataclass(frozen=True)
+class RegistrationOptions:
+    """All registration settings; every function here also accepts it in place of its own."""
+
+    sift: SiftOptions = field(default_factory=SiftOptions)
+    tie_radius_px: float = 2.0
+    index: IndexOptions = field(default_factory=IndexOptions)
+    match: MatchOptions = field(default_factory=MatchOptions)
+    pose: PoseOptions = field(default_factory=PoseOptions)
+
+    def with_seed(self, seed: int | None) -> RegistrationOptions:
+        """Copy with the RANSAC seed and the KD-tree seed set (None: RANSAC unseeded)."""
+        return replace(self, index=replace(self.index, seed=0 if seed is None else int(seed)),
+                       pose=replace(self.pose, seed=seed))
+
+    @property
+    def tie(self) -> TieOptions:
+        """The tie settings of ``features_from_images``."""
+        return TieOptions(tie_radius_px=self.tie_radius_px, sift=self.sift)
+
+
+# --------------------------------------------------------------------------- results
+
+
+@dataclass(frozen=True)
+class ObservationFeatures:
+    """Descriptors tied to some observations of one model image (re-extracted SIFT)."""
+
+    observation_idx: NDArray[np.int64]  # (K,) rows of Image.xy_px / Image.point3D_ids
+    descriptors: NDArray[np.uint8]  # (K, 128), COLMAP bin order
+    tie_distance_px: F64  # (K,) keypoint-to-observation distance, pixels
+
+
+@dataclass(frozen=True)
+class DescriptorIndex:
+    """Descriptors of the model's 3D points, searchable by nearest neighbour."""
+
+    descriptors: NDArray[np.float32]  # (P, 128)
+    point_rows: NDArray[np.int64]  # (P,) row of each descriptor's point in points_xyz
+    points_xyz: F64  # (M, 3) the model's points, model units
+    point3D_ids: NDArray[np.uint64]  # noqa: N815 (COLMAP's name) (M,)
+    method: str  # "flann" | "exact"
+    flann_checks: int = 128
+    _searcher: Any = field(default=None, repr=False, compare=False)
+
+    @property
+    def num_descriptors(self) -> int:
+        """Number of descriptors in the pool."""
+        return int(len(self.point_rows))
+
+    @property
+    def num_points(self) -> int:
+        """Number of distinct 3D points with at least one descriptor."""
+        return int(len(np.unique(self.point_rows)))
+
+
+@dataclass(frozen=True)
+class Matches:
+    """2D–3D matches: one per 3D point, the best by descriptor distance."""
+
+    query_idx: NDArray[np.int64]  # (n,) keypoint index in the query ImageFeatures
+    point_rows: NDArray[np.int64]  # (n,) row in DescriptorIndex.points_xyz
+    distance: NDArray[np.float32]  # (n,) L2 descriptor distance (uint8 units)
+
+    def __len__(self) -> int:
+        return int(len(self.query_idx))
+
+
+@dataclass(frozen=True)
+class PoseResult:
+    """Absolute pose, its covariance (see module docstring) and the acceptance verdict."""
+
+    success: bool
+    reason: str | None
+    cam_from_world: Pose | None  # None unless success (never a guessed pose)
+    covariance: F64 | None  # (6, 6) over (ω, δt), scaled by sigma_px²; None unless success
+    num_matches: int
+    num_inliers: int
+    inlier_mask: NDArray[np.bool_]  # (num_matches,)
+    reproj_error_px: float  # RMS of the 2D residual norm over the inliers (nan if no pose)
+    sigma_px: float  # σ̂ = sqrt(Σ‖r‖² / (2n − 6)), per-axis (nan if no pose)
+    camera: Camera  # the input camera, or with the refined focal length
+
+
+@dataclass(frozen=True)
+class RegistrationResult:
+    """Everything the report needs about one registered (or rejected) image."""
+
+    matches: Matches
+    pose: PoseResult
+    inlier_xy_px: F64  # (K, 2) query keypoints of the inliers, COLMAP pixels
+    inlier_xyz: F64  # (K, 3) their 3D points, model units
+    inlier_point3D_ids: NDArray[np.uint64]  # noqa: N815 (COLMAP's name) (K,)
+    num_features: int
+    match_time_s: float
+    pose_time_s: float
+
+    @property
+    def success(self) -> bool:
+        """True when the pose passed the acceptance rule."""
+        return self.pose.success
+
+    @property
+    def reason(self) -> str | None:
+        """Why registration failed, in plain words (None on success)."""
+        return self.pose.reason
+
+    @property
+    def num_matches(self) -> int:
+        """Number of 2D–3D matches fed to RANSAC."""
+        return self.pose.num_matches
+
+    @property
+    def num_inliers(self) -> int:
+        """Number of RANSAC inliers."""
+        return self.pose.num_inliers
+
+    @property
+    def reproj_error_px(self) -> float:
+        """RMS reprojection error over the inliers, pixels."""
+        return self.pose.reproj_error_px
+
+    @property
+    def cam_from_world(self) -> Pose | None:
+        """The accepted pose, or None."""
+        return self.pose.cam_from_world
+
+    @property
+    def covariance(self) -> F64 | None:
+        """(6, 6) pose covariance over (ω, δt), or None."""
+        return self.pose.covariance
+
+
+# --------------------------------------------------------------------------- SIFT
+
+
+def _extraction_options(options: SiftOptions) -> Any:
+    """pycolmap FeatureExtractionOptions (CPU SIFT) from ours."""
+    opts = pycolmap.FeatureExtractionOptions()
+    opts.use_gpu = False
+    opts.num_threads = int(options.num_threads)
+    sift = opts.sift
+    sift.max_num_features = int(options.max_num_features)
+    sift.first_octave = int(options.first_octave)
+    sift.num_octaves = int(options.num_octaves)
+    sift.octave_resolution = int(options.octave_resolution)
+    sift.peak_threshold = float(options.peak_threshold)
+    sift.edge_threshold = float(options.edge_threshold)
+    sift.max_num_orientations = int(options.max_num_orientations)
+    sift.upright = bool(options.upright)
+    sift.normalization = getattr(type(sift.normalization), options.normalization)
+    return opts
+
+
+def _run_sift(image: NDArray[Any], options: SiftOptions) -> tuple[F64, NDArray[np.uint8]]:
+    """pycolmap SIFT → (N, 4) x, y, scale, orientation and (N, 128) uint8 descriptors."""
+    opts = _extraction_options(options)
+    if hasattr(pycolmap, "FeatureExtractor"):  # pycolmap >= 3.12 / 4.x
+        extractor = pycolmap.FeatureExtractor.create(opts, pycolmap.Device.cpu)
+        if image.dtype == np.uint8:
+            kps, descs = extractor.extract_from_uint8_array(image)
+        else:
+            kps, descs = extractor.extract_from_float32_array(image)
+        kp = np.array(
+            [[k.x, k.y, k.compute_scale(), k.compute_orientation()] for k in kps],
+            dtype=np.float64,
+        ).reshape(-1, 4)
+        return kp, np.asarray(descs.data, dtype=np.uint8).reshape(-1, DESCRIPTOR_DIM)
+    # Older pycolmap: Sift.extract returns float descriptors; COLMAP stores them as
+    # uint8 via round(512·d) clipped to 255 (FeatureDescriptorsToUnsignedByte).
+    sift = pycolmap.Sift(opts, pycolmap.Device.cpu)  # pragma: no cover - old API
+    kp32, d32 = sift.extract(image)  # pragma: no cover
+    d8 = np.clip(np.round(np.asarray(d32) * 512.0), 0, 255).astype(np.uint8)  # pragma: no cover
+    return np.asarray(kp32, dtype=np.float64), d8  # pragma: no cover
+
+
+def _as_gray(image: NDArray[Any]) -> NDArray[Any]:
+    """(H, W) uint8 / float32 image as given, or (H, W, 3) RGB → grey, C-contiguous."""
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8:
+        # COLMAP's own conversion (Rec. 709 luma, rounded), as its extractor would do it.
+        bitmap = pycolmap.Bitmap.from_array(np.ascontiguousarray(img))
+        img = np.asarray(bitmap.clone_as_grey().to_array(), dtype=np.uint8).reshape(img.shape[:2])
+    elif img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.float32:
+        img = img @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)  # Rec. 709 luma
+    if img.ndim != 2 or img.shape[0] < 16 or img.shape[1] < 16:
+        raise InputError(f"SIFT needs an (H, W) or (H, W, 3) image, got shape {img.shape}")
+    if img.dtype == np.uint8:
+        return np.ascontiguousarray(img)
+    if img.dtype != np.float32:
+        raise InputError(f"SIFT needs a uint8 or float32 image, got {img.dtype}")
+    if img.size and (float(img.min()) < 0.0 or float(img.max()) > 1.0):
+        raise InputError("float32 images for SIFT must have values in [0, 1]")
+    return np.ascontiguousarray(img)
+
+
+def extract_sift(
+    image_gray: NDArray[Any], options: SiftOptions | RegistrationOptions
+) -> ImageFeatures:
+    """COLMAP CPU SIFT: keypoints in COLMAP pixels (+0.5 convention), uint8 (N, 128) descriptors.
+
+    (H, W) uint8, or float32 in [0, 1]; (H, W, 3) RGB is converted to grey as COLMAP does.
+    """
+    if isinstance(options, RegistrationOptions):
+        options = options.sift
+    img = _as_gray(image_gray)
+    kp, desc = _run_sift(img, options)
+    # COLMAP applies max_num_features before assigning orientations, so more can come
+    # back; keep the largest-scale ones (COLMAP's own preference), stable order.
+    if len(kp) > options.max_num_features:
+        keep = np.sort(np.argsort(-kp[:, 2], kind="stable")[: options.max_num_features])
+        kp, desc = kp[keep], desc[keep]
+    # pycolmap already returns COLMAP's convention (centre of the top-left pixel at
+    # (0.5, 0.5)); tests/test_registration.py checks it on blobs at known positions.
+    logger.debug("SIFT: %d keypoints on a %s image", len(kp), img.shape)
+    return ImageFeatures(xy_px=kp[:, :2].copy(), descriptors=desc)
+
+
+# --------------------------------------------------------------------------- features
+
+
+def _valid_observations(
+    model: SparseModel, image: Image
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(observation indices, point rows) of the observations whose 3D point the model holds."""
+    ids = np.asarray(image.point3D_ids, dtype=np.uint64)
+    obs = np.flatnonzero(ids != INVALID_POINT3D_ID)
+    rows = _point_rows(model, ids[obs])
+    ok = rows >= 0
+    return obs[ok].astype(np.int64), rows[ok]
+
+
+def _point_rows(model: SparseModel, ids: NDArray[np.uint64]) -> NDArray[np.int64]:
+    """Rows in model.points_xyz of these point ids; −1 for ids the model does not hold."""
+    all_ids = np.asarray(model.point3D_ids, dtype=np.uint64)
+    if len(all_ids) == 0 or len(ids) == 0:
+        return np.full(len(ids), -1, dtype=np.int64)
+    order = np.argsort(all_ids, kind="stable")
+    pos = np.clip(np.searchsorted(all_ids, ids, sorter=order), 0, len(all_ids) - 1)
+    rows = order[pos].astype(np.int64)
+    rows[all_ids[rows] != ids] = -1
+    return rows
+
+
+def features_from_images(
+    model: SparseModel, images: Mapping[str, NDArray[Any]],
+    options: TieOptions | RegistrationOptions,
+) -> dict[str, ObservationFeatures]:
+    """Re-extract SIFT on model images and tie keypoints to observations with a 3D point.
+
+    Each keypoint is tied to the nearest observation (that has a 3D point) of the same
+    image within ``tie_radius_px``; several keypoints may tie to one observation (SIFT
+    orientations). Images: name -> (H, W) grey or (H, W, 3) RGB uint8 pixels.
+    """
+    if isinstance(options, RegistrationOptions):
+        options = options.tie
+    out: dict[str, ObservationFeatures] = {}
+    for name, pixels in images.items():
+        image = model.image_by_name(name)
+        if image is None:
+            raise InputError("not an image of the sparse model", path=name)
+        cam = model.cameras[image.camera_id]
+        shape = np.asarray(pixels).shape[:2]
+        if shape != (cam.height, cam.width):
+            raise InputError(
+                f"image is {shape[1]}×{shape[0]} px but its camera is {cam.width}×{cam.height}",
+                path=name,
+            )
+        out[name] = _tie_features(model, image, extract_sift(pixels, options.sift), options)
+        logger.info("%s: %d re-extracted keypoints tied to model observations",
+                    name, len(out[name].observation_idx))
+    return out
+
+
+def _tie_features(
+    model: SparseModel, image: Image, feats: ImageFeatures, options: TieOptions
+) -> ObservationFeatures:
+    """Tie each keypoint to its nearest observation with a 3D point within the radius."""
+    obs, _ = _valid_observations(model, image)
+    if len(obs) == 0 or len(feats.xy_px) == 0:
+        return ObservationFeatures(np.zeros(0, np.int64), np.zeros((0, DESCRIPTOR_DIM), np.uint8),
+                                   np.zeros(0))
+    tree = cKDTree(np.asarray(image.xy_px, dtype=np.float64)[obs])
+    dist, nearest = tree.query(feats.xy_px, k=1, distance_upper_bound=options.tie_radius_px)
+    tied = np.isfinite(dist)
+    return ObservationFeatures(
+        observation_idx=obs[nearest[tied]],
+        descriptors=np.asarray(feats.descriptors, dtype=np.uint8)[tied],
+        tie_distance_px=np.asarray(dist[tied], dtype=np.float64),
+    )
+
+
+# --------------------------------------------------------------------------- index
+
+
+def _image_descriptors(
+    model: SparseModel, name: str, image: Image, feats: ImageFeatures | ObservationFeatures
+) -> tuple[NDArray[np.uint8], NDArray[np.int64]]:
+    """(descriptors, point rows) of one image's observations that have a 3D point."""
+    if isinstance(feats, ObservationFeatures):
+        obs_idx, desc = np.asarray(feats.observation_idx), np.asarray(feats.descriptors)
+        if len(obs_idx) and (obs_idx.min() < 0 or obs_idx.max() >= len(image.xy_px)):
+            raise InputError("tied observation index out of range for this image", path=name)
+    else:
+        desc = np.asarray(feats.descriptors)
+        obs_idx = np.arange(len(desc))
+        _check_aligned(name, image, feats)
+    if desc.ndim != 2 or desc.shape[1] != DESCRIPTOR_DIM or len(desc) != len(obs_idx):
+        raise InputError(f"descriptors must be (N, 128), got {desc.shape}", path=name)
+    ids = np.asarray(image.point3D_ids, dtype=np.uint64)[obs_idx]
+    rows = _point_rows(model, ids)  # invalid / removed points -> -1
+    ok = rows >= 0
+    return desc[ok].astype(np.uint8, copy=False), rows[ok]
+
+
+def _check_aligned(name: str, image: Image, feats: ImageFeatures) -> None:
+    """Database convention: keypoint i of an image is observation i of the model."""
+    if len(feats.xy_px) != len(image.xy_px) or len(feats.descriptors) != len(image.xy_px):
+        raise InputError(
+            f"{len(feats.xy_px)} keypoints but the model has {len(image.xy_px)} observations "
+            "of this image (keypoint i must be observation i): wrong database for this model?",
+            path=name,
+        )
+    if len(image.xy_px):
+        offset = float(np.max(np.abs(np.asarray(feats.xy_px) - np.asarray(image.xy_px))))
+        if offset > 0.05:
+            raise InputError(
+                f"keypoints differ from the model's observations by up to {offset:.2f} px: "
+                "wrong database for this model?", path=name,
+            )
+
+
+def _reduce_per_point(
+    desc: NDArray[np.float32], rows: NDArray[np.int64], max_per_point: int
+) -> NDArray[np.int64]:
+    """Indices keeping, per point, the ``max_per_point`` descriptors nearest its mean."""
+    order = np.argsort(rows, kind="stable")
+    r = rows[order]
+    starts = np.flatnonzero(np.r_[True, r[1:] != r[:-1]])
+    counts = np.diff(np.r_[starts, len(r)])
+    means = np.add.reduceat(desc[order], starts, axis=0) / counts[:, None]
+    group = np.repeat(np.arange(len(starts)), counts)
+    dist = np.linalg.norm(desc[order] - means[group], axis=1)
+    by_dist = np.lexsort((dist, group))  # within each group, nearest to the mean first
+    rank = np.empty(len(r), dtype=np.int64)
+    rank[by_dist] = np.arange(len(r)) - starts[group[by_dist]]
+    return np.sort(order[rank < max_per_point])
+
+
+def build_descriptor_index(
+    model: SparseModel,
+    features: Mapping[str, ImageFeatures] | Mapping[str, ObservationFeatures],
+    options: IndexOptions | RegistrationOptions,
+) -> DescriptorIndex:
+    """Index the descriptors of every model observation that has a 3D point.
+
+    ``ImageFeatures`` follow the COLMAP database convention (keypoint i = observation i
+    of the image in the model, checked); ``ObservationFeatures`` come from
+    ``features_from_images``. Features of images absent from the model are ignored.
+    """
+    if isinstance(options, RegistrationOptions):
+        options = options.index
+    descs, rows = [], []
+    for name, feats in features.items():
+        image = model.image_by_name(name)
+        if image is None:
+            logger.debug("%s: not in the model, its features are not indexed", name)
+            continue
+        d, r = _image_descriptors(model, name, image, feats)
+        descs.append(d)
+        rows.append(r)
+    if not descs or sum(len(r) for r in rows) == 0:
+        raise InputError("no descriptor of any 3D point of the model: features and model disagree")
+    desc = np.concatenate(descs).astype(np.float32)
+    point_rows = np.concatenate(rows)
+    keep = _reduce_per_point(desc, point_rows, max(1, options.max_descriptors_per_point))
+    desc, point_rows = np.ascontiguousarray(desc[keep]), point_rows[keep]
+    searcher = _make_searcher(desc, options)
+    method = "exact" if searcher is None else "flann"
+    logger.info("descriptor index: %d descriptors of %d points (%s)", len(desc),
+                len(np.unique(point_rows)), method)
+    return DescriptorIndex(
+        descriptors=desc, point_rows=point_rows,
+        points_xyz=np.asarray(model.points_xyz, dtype=np.float64),
+        point3D_ids=np.asarray(model.point3D_ids, dtype=np.uint64),
+        method=method,
+        flann_checks=options.flann_checks, _searcher=searcher,
+    )
+
+
+def _use_exact(num_descriptors: int, options: IndexOptions) -> bool:
+    """Exact brute force or FLANN for a pool of this size."""
+    if options.exact is not None:
+        return bool(options.exact)
+    return num_descriptors <= options.exact_max_pool
+
+
+def _make_searcher(desc: NDArray[np.float32], options: IndexOptions) -> Any:
+    """OpenCV FLANN KD-trees over the (P, 128) float32 pool, or None for exact search.
+
+    Exact search (BLAS matrix products) costs O(queries × pool): ~0.4 s for 6k query
+    keypoints against 2.5k descriptors here, but tens of seconds against the 100k+
+    descriptors of real models, where FLANN's randomised KD-trees (4 trees, 128
+    checks) take ~2 s and return ~99 % of the exact first neighbours. The trees are
+    random: OpenCV's (thread-local) RNG is seeded right before building so that the
+    same input gives the same index and the same matches.
+    """
+    if _use_exact(len(desc), options):
+        return None
+    cv2.setRNGSeed(int(options.seed))
+    params = {"algorithm": 1, "trees": int(options.flann_trees)}  # 1 = FLANN_INDEX_KDTREE
+    return cv2.flann_Index(desc, params)  # type: ignore[attr-defined]
+
+
+def _exact_knn(pool: NDArray[np.float32], query: NDArray[np.float32], k: int) -> tuple[
+        NDArray[np.int64], NDArray[np.float32]]:
+    """(Q, k) exact nearest neighbours by chunked ‖q‖² − 2 q·d + ‖d‖² (sorted by distance)."""
+    pool_sq = np.einsum("ij,ij->i", pool, pool)
+    chunk = max(1, (1 << 24) // max(len(pool), 1))  # ~64 MB of float32 distances per block
+    idx = np.empty((len(query), k), dtype=np.int64)
+    d2 = np.empty((len(query), k), dtype=np.float32)
+    for s in range(0, len(query), chunk):
+        q = query[s:s + chunk]
+        full = pool_sq[None, :] - 2.0 * (q @ pool.T) + np.einsum("ij,ij->i", q, q)[:, None]
+        part = np.argpartition(full, k - 1, axis=1)[:, :k] if k < len(pool) else \
+            np.broadcast_to(np.arange(len(pool)), (len(q), len(pool)))
+        vals = np.take_along_axis(full, part, axis=1)
+        order = np.argsort(vals, axis=1, kind="stable")
+        idx[s:s + chunk] = np.take_along_axis(part, order, axis=1)
+        d2[s:s + chunk] = np.take_along_axis(vals, order, axis=1)
+    return idx, np.sqrt(np.maximum(d2, 0.0))
+
+
+def _knn(index: DescriptorIndex, query: NDArray[np.float32], k: int) -> tuple[
+        NDArray[np.int64], NDArray[np.float32]]:
+    """(Q, k) pool indices and L2 distances of the k nearest descriptors."""
+    if index.method == "exact":
+        return _exact_knn(index.descriptors, query, k)
+    idx, d2 = index._searcher.knnSearch(query, k, params={"checks": index.flann_checks})
+    # FLANN's KD-tree returns squared L2 distances.
+    return np.asarray(idx, dtype=np.int64), np.sqrt(np.maximum(d2, 0)).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- matching
+
+
+def match_to_model(
+    query: ImageFeatures, index: DescriptorIndex, options: MatchOptions | RegistrationOptions
+) -> Matches:
+    """Ratio-test matches (second neighbour from another 3D point), one per 3D point."""
+    if isinstance(options, RegistrationOptions):
+        options = options.match
+    q = np.asarray(query.descriptors)
+    if q.ndim != 2 or q.shape[1] != DESCRIPTOR_DIM:
+        raise InputError(f"query descriptors must be (N, 128), got {q.shape}")
+    empty = Matches(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))
+    if len(q) == 0 or index.num_descriptors < 2:
+        return empty
+    # k > max descriptors of one point guarantees a neighbour from another point when
+    # the pool allows; otherwise the k-th distance is a lower bound of that distance,
+    # which keeps the test conservative.
+    k = int(min(index.num_descriptors, np.bincount(index.point_rows).max() + 1))
+    idx, dist = _knn(index, np.ascontiguousarray(q, dtype=np.float32), k)
+    prow = index.point_rows[idx]
+    other = prow != prow[:, :1]
+    j2 = np.where(other.any(axis=1), other.argmax(axis=1), k - 1)
+    d1, d2 = dist[:, 0], dist[np.arange(len(dist)), j2]
+    ok = d1 < options.ratio * d2
+    if options.max_distance is not None:
+        ok &= d1 <= options.max_distance
+    qi = np.flatnonzero(ok)
+    if len(qi) == 0:
+        return empty
+    order = qi[np.argsort(d1[qi], kind="stable")]
+    _, first = np.unique(prow[order, 0], return_index=True)  # best match per 3D point
+    sel = np.sort(order[first])
+    return Matches(query_idx=sel.astype(np.int64), point_rows=prow[sel, 0].astype(np.int64),
+                   distance=d1[sel].astype(np.float32))
+
+
+# --------------------------------------------------------------------------- pose
+
+
+def _pycolmap_options(options: PoseOptions) -> tuple[Any, Any]:
+    """pycolmap AbsolutePoseEstimation/RefinementOptions from ours."""
+    est = pycolmap.AbsolutePoseEstimationOptions()
+    est.estimate_focal_length = False
+    est.ransac.max_error = float(options.ransac_max_error_px)
+    est.ransac.min_inlier_ratio = float(options.ransac_min_inlier_ratio)
+    est.ransac.confidence = float(options.ransac_confidence)
+    est.ransac.max_num_trials = int(options.ransac_max_num_trials)
+    est.ransac.random_seed = -1 if options.seed is None else int(options.seed)
+    est.ransac.num_threads = 1
+    ref = pycolmap.AbsolutePoseRefinementOptions()
+    ref.loss_function_scale = float(options.loss_scale_px)
+    ref.refine_focal_length = bool(options.refine_focal_length)
+    ref.refine_extra_params = False
+    return est, ref
+
+
+def _run_pycolmap_pose(
+    xy: F64, xyz: F64, camera: Camera, options: PoseOptions
+) -> tuple[Pose, NDArray[np.bool_], Camera] | None:
+    """LO-RANSAC P3P + Cauchy-loss refinement; None when pycolmap finds no pose."""
+    est, ref = _pycolmap_options(options)
+    cam = camera.to_pycolmap()  # refined in place when the focal length is refined
+    try:
+        out = pycolmap.estimate_and_refine_absolute_pose(xy, xyz, cam, est, ref)
+    except (ValueError, RuntimeError) as exc:  # pycolmap raises on degenerate input
+        logger.debug("pycolmap absolute pose raised: %s", exc)
+        return None
+    if out is None:
+        return None
+    M = np.asarray(out["cam_from_world"].matrix(), dtype=np.float64)
+    refined = Camera(camera.camera_id, camera.model, camera.width, camera.height,
+                     np.asarray(cam.params, dtype=np.float64).copy())
+    return Pose(M[:, :3].copy(), M[:, 3].copy()), np.asarray(out["inlier_mask"], bool), refined
+
+
+def _focal_idxs(camera: Camera) -> list[int]:
+    """Indices of the focal length parameter(s) in camera.params."""
+    return [int(i) for i in camera.to_pycolmap().focal_length_idxs()]
+
+
+def _projections(pose: Pose, camera: Camera, xyz: F64) -> F64:
+    """(N, 2) pixels of world points."""
+    return camera.project(pose.transform(xyz))
+
+
+def _jacobian(pose: Pose, camera: Camera, xyz: F64, with_focal: bool) -> F64:
+    """(2N, 6[+f]) d(pixels)/d(ω, δt[, f]) by central differences (any camera model)."""
+    depth = float(np.median(np.abs(pose.transform(xyz)[:, 2])))
+    cols = []
+    for k in range(6):
+        h = 1e-6 if k < 3 else 1e-6 * max(depth, 1e-12)
+        d = np.zeros(6)
+        d[k] = h
+        plus = Pose(Rotation.from_rotvec(d[:3]).as_matrix() @ pose.R, pose.t + d[3:])
+        minus = Pose(Rotation.from_rotvec(-d[:3]).as_matrix() @ pose.R, pose.t - d[3:])
+        diff = _projections(plus, camera, xyz) - _projections(minus, camera, xyz)
+        cols.append(diff.ravel() / (2 * h))
+    for i in _focal_idxs(camera) if with_focal else []:
+        h = 1e-6 * float(camera.params[i])
+        p_plus, p_minus = camera.params.copy(), camera.params.copy()
+        p_plus[i] += h
+        p_minus[i] -= h
+        c_plus = Camera(camera.camera_id, camera.model, camera.width, camera.height, p_plus)
+        c_minus = Camera(camera.camera_id, camera.model, camera.width, camera.height, p_minus)
+        diff = _projections(pose, c_plus, xyz) - _projections(pose, c_minus, xyz)
+        cols.append(diff.ravel() / (2 * h))
+    return np.column_stack(cols)
+
+
+def _pose_covariance(
+    pose: Pose, camera: Camera, xy: F64, xyz: F64, with_focal: bool
+) -> tuple[F64 | None, float, float]:
+    """(σ̂²-scaled 6×6 covariance or None if singular, σ̂ px, RMS residual norm px)."""
+    res = _projections(pose, camera, xyz) - xy
+    n = len(xy)
+    J = _jacobian(pose, camera, xyz, with_focal)
+    dof = 2 * n - J.shape[1]
+    rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
+    if dof <= 0:
+        return None, float("nan"), rms
+    sigma2 = float(np.sum(res**2) / dof)
+    JtJ = J.T @ J
+    if not np.all(np.isfinite(JtJ)) or np.linalg.cond(JtJ) > 1e14:
+        return None, float(np.sqrt(sigma2)), rms
+    cov = sigma2 * np.linalg.inv(JtJ)[:6, :6]
+    return 0.5 * (cov + cov.T), float(np.sqrt(sigma2)), rms
+
+
+def _check_pose_inputs(xy: F64, xyz: F64) -> None:
+    """Shapes and finiteness of the correspondences."""
+    if xy.ndim != 2 or xy.shape[1] != 2 or xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise InputError(f"estimate_pose needs (N, 2) and (N, 3) arrays, got {xy.shape}, "
+                         f"{xyz.shape}")
+    if len(xy) != len(xyz):
+        raise InputError(f"{len(xy)} image points but {len(xyz)} 3D points")
+    if not (np.all(np.isfinite(xy)) and np.all(np.isfinite(xyz))):
+        raise InputError("non-finite 2D or 3D coordinates")
+
+
+def _failed(reason: str, n: int, camera: Camera, mask: NDArray[np.bool_] | None = None,
+            rms: float = float("nan"), sigma: float = float("nan")) -> PoseResult:
+    """A rejected pose: diagnostics kept, no pose, no covariance."""
+    mask = np.zeros(n, dtype=bool) if mask is None else mask
+    return PoseResult(False, reason, None, None, n, int(mask.sum()), mask, rms, sigma, camera)
+
+
+def _acceptance_reason(n: int, k: int, rms: float, options: PoseOptions) -> str | None:
+    """Our acceptance rule (COLMAP's registrator thresholds); None when accepted."""
+    if k < options.min_inliers:
+        return f"only {k} inliers of {n} matches (need {options.min_inliers})"
+    if k < options.min_inlier_ratio * n:
+        return (f"inlier ratio {k / n:.2f} ({k} of {n} matches) below "
+                f"{options.min_inlier_ratio:.2f}")
+    if not rms <= options.max_reproj_error_px:
+        return (f"RMS reprojection error {rms:.2f} px over {k} inliers exceeds "
+                f"{options.max_reproj_error_px:.2f} px")
+    return None
+
+
+def estimate_pose(
+    xy_px: F64, xyz_model: F64, camera: Camera, options: PoseOptions | RegistrationOptions
+) -> PoseResult:
+    """cam_from_world from 2D–3D matches: LO-RANSAC P3P + refinement, our acceptance rule."""
+    if isinstance(options, RegistrationOptions):
+        options = options.pose
+    xy = np.ascontiguousarray(xy_px, dtype=np.float64)
+    xyz = np.ascontiguousarray(xyz_model, dtype=np.float64)
+    _check_pose_inputs(xy, xyz)
+    n = len(xy)
+    if n < 4:
+        return _failed(f"only {n} matches (a pose needs at least 4; acceptance needs "
+                       f"{options.min_inliers} inliers)", n, camera)
+    found = _run_pycolmap_pose(xy, xyz, camera, options)
+    if found is None:
+        return _failed(f"RANSAC found no pose consistent with the {n} matches", n, camera)
+    pose, mask, cam = found
+    with_focal = options.refine_focal_length
+    cov, sigma, rms = _pose_covariance(pose, cam, xy[mask], xyz[mask], with_focal)
+    reason = _acceptance_reason(n, int(mask.sum()), rms, options)
+    if reason is None and cov is None:
+        reason = "pose covariance is singular (degenerate inlier geometry)"
+    if reason is not None:
+        logger.info("pose rejected: %s", reason)
+        return _failed(reason, n, cam, mask, rms, sigma)
+    return PoseResult(True, None, pose, cov, n, int(mask.sum()), mask, rms, sigma, cam)
+
+
+def register_image(
+    query: ImageFeatures, camera: Camera, index: DescriptorIndex, options: RegistrationOptions
+) -> RegistrationResult:
+    """Match a query image's features to the model and estimate its pose."""
+    xy_all = np.asarray(query.xy_px, dtype=np.float64).reshape(-1, 2)
+    if len(xy_all) and (xy_all.min() < -1 or xy_all[:, 0].max() > camera.width + 1
+                        or xy_all[:, 1].max() > camera.height + 1):
+        raise InputError(f"query keypoints fall outside the camera's {camera.width}×"
+                         f"{camera.height} image: wrong camera or resized image?")
+    t0 = time.perf_counter()
+    matches = match_to_model(query, index, options.match)
+    t1 = time.perf_counter()
+    xy = xy_all[matches.query_idx]
+    xyz = index.points_xyz[matches.point_rows]
+    pose = estimate_pose(xy, xyz, camera, options.pose)
+    t2 = time.perf_counter()
+    m = pose.inlier_mask
+    logger.info("registration: %d features, %d matches, %d inliers, %s", len(xy_all),
+                len(matches), pose.num_inliers, "accepted" if pose.success else pose.reason)
+    return RegistrationResult(
+        matches=matches, pose=pose, inlier_xy_px=xy[m], inlier_xyz=xyz[m],
+        inlier_point3D_ids=index.point3D_ids[matches.point_rows[m]],
+        num_features=len(xy_all), match_time_s=t1 - t0, pose_time_s=t2 - t1,
+    )

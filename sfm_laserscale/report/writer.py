@@ -1,0 +1,245 @@
+"""Writers of the ``scale`` outputs (DESIGN.md §6): report.json/html, CSVs, transforms,
+the rescaled model and mesh, overlays. Pure dict building is kept apart from file writing.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import cv2
+
+from sfm_laserscale import __version__
+from sfm_laserscale.geometry import qvec_from_rotmat
+from sfm_laserscale.io.colmap import write_scaled_colmap_model
+from sfm_laserscale.io.images import read_rgb
+from sfm_laserscale.io.meshes import write_scaled_mesh
+from sfm_laserscale.io.spots_csv import write_spots_csv
+from sfm_laserscale.io.transforms import write_matrix_4x4, write_sim3
+from sfm_laserscale.report.html import render_html
+from sfm_laserscale.report.overlays import draw_overlay
+
+if TYPE_CHECKING:
+    from sfm_laserscale.fusion import FusedScale
+    from sfm_laserscale.pipeline import ImageRun, LoadedInputs, ScaleInputs, ScaleOptions, Timer
+
+logger = logging.getLogger(__name__)
+
+
+def _num(x: Any) -> float | None:
+    """JSON-safe float: NaN/inf -> None."""
+    if x is None:
+        return None
+    v = float(x)
+    return v if math.isfinite(v) else None
+
+
+def fused_to_dict(f: FusedScale) -> dict[str, Any]:
+    """The report's scale block of one method."""
+    return {
+        "value": _num(f.value),
+        "std": _num(f.std),
+        "ci95": [_num(f.ci95[0]), _num(f.ci95[1])],
+        "inverse": _num(f.inverse),
+        "method": f.method,
+        "n_estimates": int(f.n_estimates),
+        "n_rejected": int(f.n_rejected),
+        "n_images": len(f.per_image),
+        "notes": list(f.notes),
+    }
+
+
+def _estimate_dicts(run: ImageRun) -> list[dict[str, Any]]:
+    if run.estimates is None:
+        return []
+    return [
+        {
+            "method": e.method,
+            "laser": e.laser,
+            "scale": _num(e.scale),
+            "sigma": _num(e.sigma),
+            "direction_residual_deg": _num(e.direction_residual_deg),
+            "depth_m": _num(e.depth_m),
+            "rejected": bool(e.rejected),
+            "reason": e.reason,
+        }
+        for e in run.estimates.estimates
+    ]
+
+
+def _image_dict(run: ImageRun) -> dict[str, Any]:
+    reg = run.registration
+    pose = None if reg is None else reg.cam_from_world
+    d: dict[str, Any] = {
+        "name": run.name,
+        "registered": bool(pose is not None),
+        "reason": run.reason,
+        "num_features": None if reg is None else int(reg.num_features),
+        "num_matches": None if reg is None else int(reg.num_matches),
+        "num_inliers": None if reg is None else int(reg.num_inliers),
+        "reproj_error_px": None if reg is None else _num(reg.reproj_error_px),
+        "cam_from_world": None,
+        "spots": [
+            {
+                "laser": s.laser,
+                "x": s.x,
+                "y": s.y,
+                "score": _num(s.score),
+                "sigma_px": _num(s.sigma_px),
+                "source": s.source,
+            }
+            for s in run.spots
+        ],
+        "missing_spots": dict(run.spot_reasons),
+        "estimates": _estimate_dicts(run),
+    }
+    if pose is not None:
+        d["cam_from_world"] = {
+            "rotation_wxyz": [float(q) for q in qvec_from_rotmat(pose.R)],
+            "translation": [float(t) for t in pose.t],
+        }
+    return d
+
+
+def build_report(
+    inputs: ScaleInputs,
+    options: ScaleOptions,
+    loaded: LoadedInputs,
+    runs: Sequence[ImageRun],
+    headline: FusedScale,
+    fused: dict[str, FusedScale],
+    checks: dict[str, float],
+    timer: Timer,
+) -> dict[str, Any]:
+    """report.json content (DESIGN.md §6 keys, plus inputs and options for reproduction)."""
+    return {
+        "version": __version__,
+        "scale": fused_to_dict(headline),
+        "methods": {m: fused_to_dict(f) for m, f in fused.items()},
+        "images": [_image_dict(r) for r in runs],
+        "checks": {k: _num(v) for k, v in checks.items()},
+        "timings_s": timer.as_dict(),
+        "inputs": {
+            k: (None if v is None else ([str(p) for p in v] if isinstance(v, tuple) else str(v)))
+            for k, v in vars(inputs).items()
+        },
+        "rig": {
+            "name": loaded.rig.name,
+            "lasers": loaded.rig.names,
+            "pairs": [list(p.lasers) for p in loaded.rig.pairs],
+        },
+        "model": {
+            "format": loaded.model.source_format,
+            "images": len(loaded.model.images),
+            "points": int(len(loaded.model.points_xyz)),
+            "descriptors_indexed": int(loaded.index.num_descriptors),
+        },
+        "options": {"method": options.method, "seed": options.seed},
+    }
+
+
+def summary_line(headline: FusedScale, runs: Sequence[ImageRun]) -> str:
+    """One line for the terminal."""
+    used = sum(1 for r in runs if r.reason is None)
+    if not math.isfinite(headline.value):
+        why = "; ".join(sorted({f"{r.name}: {r.reason}" for r in runs if r.reason}))[:400]
+        return f"no scale could be estimated ({why})"
+    return (
+        f"scale = {headline.value:.6g} ± {headline.std:.2g} m per model unit "
+        f"(95 % [{headline.ci95[0]:.6g}, {headline.ci95[1]:.6g}], {headline.method.upper()}, "
+        f"{used}/{len(runs)} images); 1/s = {1.0 / headline.value:.6g}"
+    )
+
+
+def write_estimates_csv(path: Path, runs: Sequence[ImageRun]) -> None:
+    """One row per (image, method, laser or pair)."""
+    cols = [
+        "image",
+        "method",
+        "laser",
+        "scale",
+        "sigma",
+        "direction_residual_deg",
+        "depth_m",
+        "rejected",
+        "reason",
+    ]
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(cols)
+        for run in runs:
+            for e in _estimate_dicts(run):
+                w.writerow([run.name] + [("" if e[c] is None else e[c]) for c in cols[1:]])
+
+
+def _write_overlays(
+    out: Path, runs: Sequence[ImageRun], loaded: LoadedInputs, options: ScaleOptions
+) -> dict[str, str]:
+    folder = out / "overlays"
+    folder.mkdir()
+    written: dict[str, str] = {}
+    for run in runs:
+        if run.camera is None:
+            continue
+        rgb = read_rgb(run.path)
+        scales = {
+            e.laser: e.scale
+            for e in (run.estimates.estimates if run.estimates else ())
+            if e.method == "fcm" and not e.rejected
+        }
+        inl = None if run.registration is None else run.registration.inlier_xy_px
+        img = draw_overlay(
+            rgb,
+            run.camera,
+            loaded.rig,
+            run.spots,
+            scales,
+            inl,
+            options.detection.min_range_m,
+            options.detection.max_range_m,
+        )
+        name = Path(run.name).stem + ".jpg"
+        cv2.imwrite(str(folder / name), img, [cv2.IMWRITE_JPEG_QUALITY, 88])
+        written[run.name] = f"overlays/{name}"
+    return written
+
+
+def _write_scaled(out: Path, inputs: ScaleInputs, scale: float) -> None:
+    scaled = out / "scaled"
+    scaled.mkdir()
+    write_scaled_colmap_model(inputs.model, scaled / "model", scale)
+    write_scaled_mesh(inputs.mesh, scaled, scale)
+
+
+def write_outputs(
+    out: Path,
+    inputs: ScaleInputs,
+    loaded: LoadedInputs,
+    runs: Sequence[ImageRun],
+    headline: FusedScale,
+    report: dict[str, Any],
+    options: ScaleOptions,
+    timer: Timer,
+) -> None:
+    """Every file of DESIGN.md §6 into ``out`` (report.json last, with final timings)."""
+    write_estimates_csv(out / "estimates.csv", runs)
+    write_spots_csv(out / "spots.csv", {r.name: list(r.spots) for r in runs})
+    if math.isfinite(headline.value):
+        write_sim3(out / "transform.sim3", headline.value)
+        write_matrix_4x4(out / "transform_4x4.txt", headline.value)
+        _write_scaled(out, inputs, headline.value)
+    overlays = _write_overlays(out, runs, loaded, options) if options.overlays else {}
+    report["timings_s"] = timer.as_dict()
+    (out / "report.html").write_text(render_html(report, out, overlays), encoding="utf-8")
+    report["timings_s"] = timer.as_dict()
+    (out / "report.json").write_text(
+        json.dumps(report, indent=2, allow_nan=False) + "\n", encoding="utf-8"
+    )
+
+
+__all__ = ["build_report", "summary_line", "write_outputs", "fused_to_dict"]

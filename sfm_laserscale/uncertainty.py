@@ -1,0 +1,468 @@
+"""Per-image scale estimates (FCM, PCM, Direct 3D) with first-order uncertainty.
+
+Each estimate of one image is a function of all its spot pixels, the 6 pose parameters and the
+rig calibration. Perturbing a spot or the pose moves the hit: the perturbed ray is re-intersected
+with the mesh's LOCAL TANGENT PLANE at the hit (closed form), which is exact for planar patches
+and first-order correct otherwise. The Jacobian is taken by central differences along the
+square-root directions of the input covariance (each step ``fd_step_sigma`` = 1 % of that
+direction's standard deviation, so steps are relative to each input's own noise and unit-free),
+and gives the joint covariance of the image's estimates (they share the pose error).
+
+Inputs and their covariance (blocks are independent):
+- spot pixels: σ_px² I per spot (per axis, COLMAP pixel convention);
+- pose: ``pose_covariance`` (6×6), ordered [rotation (3, rad), translation (3, model units)],
+  LEFT perturbation R' = exp([δ]ₓ) R, t' = t + δt (see :func:`perturb_pose`, the one place
+  where this parametrisation lives);
+- rig (per calibrated laser, when the rig gives them): origin offset on the laser plane (x, y,
+  ``sigma_origin`` metres each) and beam tilt about its origin (two angles perpendicular to the
+  beam, ``sigma_direction`` radians each). Rig errors are common to all images; they are kept
+  apart (``rig_jacobian``) so that fusion does not average them down.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from sfm_laserscale.errors import InputError
+from sfm_laserscale.methods.baselines import direct3d_scale, direct3d_scale_batch
+from sfm_laserscale.methods.fcm import fcm_scale, fcm_scale_batch
+from sfm_laserscale.methods.pcm import pcm_scale, pcm_scale_batch
+from sfm_laserscale.model import Camera, Pose
+from sfm_laserscale.rig import Rig
+
+logger = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+METHODS = ("fcm", "pcm", "direct3d")
+RIG_PARAM_SUFFIXES = ("origin_x", "origin_y", "direction_a", "direction_b")
+
+
+@dataclass(frozen=True)
+class SpotHit:
+    """One laser spot of an image and its first mesh hit (world frame, model units)."""
+
+    laser: str
+    xy_px: F64  # (2,) COLMAP pixel convention
+    sigma_px: float  # 1-σ per axis, pixels
+    hit_world: F64  # (3,) model units
+    normal_world: F64  # (3,) unit mesh normal at the hit
+
+
+@dataclass(frozen=True)
+class ImageObservation:
+    """A registered laser image: camera, pose (+ covariance) and its spot hits."""
+
+    image: str
+    camera: Camera
+    cam_from_world: Pose
+    pose_covariance: F64 | None  # (6, 6) [rot (rad), trans (model units)], left perturbation
+    hits: tuple[SpotHit, ...]
+
+
+@dataclass(frozen=True)
+class EstimationOptions:
+    """Options of :func:`estimate_image`."""
+
+    include_rig_uncertainty: bool = True
+    fd_step_sigma: float = 1e-2  # central-difference step in σ of each input direction
+    max_direction_residual_deg: float = 3.0  # FCM residual always accepted below this
+    direction_residual_nsigma: float = 5.0  # ... and below this many propagated σ
+    min_incidence_cos: float = 0.02  # |cos(ray, normal)| below this: grazing ray, rejected
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One scale estimate (metres per model unit) of one image, laser or pair, and method."""
+
+    image: str
+    method: str  # "fcm" | "pcm" | "direct3d"
+    laser: str  # laser name, or "L1+L2" for a pair
+    scale: float
+    sigma: float  # total 1-σ (spots + pose + rig), m per model unit
+    direction_residual_deg: float | None  # FCM only: angle between Ô_L and O_L
+    depth_m: float  # camera–hit distance in metres (pair: camera–midpoint)
+    rejected: bool
+    reason: str | None
+
+
+@dataclass(frozen=True)
+class ImageEstimates:
+    """All estimates of one image and, per method, their joint covariance (estimate order)."""
+
+    image: str
+    estimates: tuple[Estimate, ...]
+    covariance: Mapping[str, F64]  # method -> (n_m, n_m) total = random + J_rig J_rigᵀ
+    covariance_random: Mapping[str, F64]  # method -> (n_m, n_m) spots + pose (per image)
+    rig_jacobian: Mapping[str, F64]  # method -> (n_m, R) d estimate / d (unit-σ rig parameter)
+    rig_params: tuple[str, ...]  # names of the R rig parameters ("L1.origin_x", ...)
+
+    def of(self, method: str) -> tuple[Estimate, ...]:
+        """This image's estimates of one method, in covariance order."""
+        return tuple(e for e in self.estimates if e.method == method)
+
+
+def perturb_poses(pose: Pose, deltas: F64) -> tuple[F64, F64]:
+    """(B, 6) perturbations [δrot (rad), δt] -> R' = exp([δrot]ₓ) R (B, 3, 3), t' = t + δt (B, 3).
+
+    The ONE place where the pose-covariance parametrisation lives (left rotation perturbation,
+    additive translation: COLMAP/ceres EigenQuaternionManifold convention).
+    """
+    d = np.asarray(deltas, dtype=np.float64).reshape(-1, 6)
+    R = Rotation.from_rotvec(d[:, :3]).as_matrix() @ pose.R
+    return np.asarray(R, dtype=np.float64), pose.t[None, :] + d[:, 3:]
+
+
+def perturb_pose(pose: Pose, delta6: F64) -> Pose:
+    """Pose perturbed by [δrot (3, rad), δt (3)]: R' = exp([δrot]ₓ) R, t' = t + δt (left)."""
+    R, t = perturb_poses(pose, np.asarray(delta6, dtype=np.float64).reshape(1, 6))
+    return Pose(R[0], t[0])
+
+
+def rig_parameter_names(rig: Rig) -> tuple[str, ...]:
+    """Names of the rig calibration parameters, 4 per calibrated laser, in rig order."""
+    return tuple(f"{las.name}.{s}" for las in rig.lasers if las.calibrated
+                 for s in RIG_PARAM_SUFFIXES)
+
+
+def _tilt_basis(v: F64) -> tuple[F64, F64]:
+    """Two unit vectors perpendicular to the unit beam direction v (deterministic)."""
+    a = np.array([v[2], 0.0, -v[0]]) / np.hypot(v[2], v[0])  # (0, 1, 0) × v; v·c_z > 0.01
+    b = np.array([v[1] * a[2] - v[2] * a[1], v[2] * a[0] - v[0] * a[2],
+                  v[0] * a[1] - v[1] * a[0]])  # v × a
+    return a, b
+
+
+@dataclass(frozen=True)
+class _Beam:
+    origin: F64  # (3,) metres on z = 0
+    direction: F64  # (3,) unit
+    tilt: tuple[F64, F64]  # basis of the direction perturbation
+    rig_col: int  # first of the laser's 4 rig parameters
+
+    def perturbed(self, drig: F64) -> tuple[F64, F64]:
+        """(B, 3) origins and unit directions for (B, R) rig parameter offsets."""
+        c = self.rig_col
+        origin = np.repeat(self.origin[None], len(drig), axis=0)
+        origin[:, 0] += drig[:, c]
+        origin[:, 1] += drig[:, c + 1]
+        v = self.direction + drig[:, c + 2, None] * self.tilt[0] \
+            + drig[:, c + 3, None] * self.tilt[1]
+        return origin, v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+@dataclass(frozen=True)
+class _Fcm:
+    laser: str
+    hit: int  # index into the layout's hits
+    beam: _Beam
+
+
+@dataclass(frozen=True)
+class _Pair:
+    name: str
+    hits: tuple[int, int]
+    separation: float
+    beams: tuple[_Beam, _Beam] | None  # when both lasers are calibrated (rig sensitivity)
+
+
+@dataclass(frozen=True)
+class _Layout:
+    names: tuple[str, ...]  # laser of each hit
+    xy: F64  # (K, 2)
+    sigma_px: F64  # (K,)
+    hit_world: F64  # (K, 3)
+    normal_world: F64  # (K, 3)
+    fcm: tuple[_Fcm, ...]
+    pairs: tuple[_Pair, ...]
+    rig_sigma: F64  # (R,)
+
+    @property
+    def n_out(self) -> int:
+        return 2 * len(self.fcm) + 2 * len(self.pairs)
+
+
+def _hit_arrays(obs: ImageObservation, rig: Rig) -> tuple[tuple[str, ...], F64, F64, F64, F64]:
+    """Validated per-hit arrays (names, xy, σ, hit, unit normal) of an observation."""
+    names = tuple(h.laser for h in obs.hits)
+    for name in names:
+        if name not in rig.names:
+            raise InputError(f"image {obs.image}: spot for unknown laser {name!r}")
+        if names.count(name) > 1:
+            raise InputError(f"image {obs.image}: two spots assigned to laser {name!r}")
+    k = len(names)
+    xy = np.array([np.asarray(h.xy_px, np.float64).reshape(2) for h in obs.hits]).reshape(k, 2)
+    sig = np.array([float(h.sigma_px) for h in obs.hits], dtype=np.float64)
+    hw = np.array([np.asarray(h.hit_world, np.float64).reshape(3) for h in obs.hits]).reshape(k, 3)
+    nw = np.array([np.asarray(h.normal_world, np.float64).reshape(3) for h in obs.hits])
+    nw = nw.reshape(k, 3)
+    if np.any(~np.isfinite(sig)) or np.any(sig < 0):
+        raise InputError(f"image {obs.image}: spot sigma must be finite and >= 0")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        nw = nw / np.linalg.norm(nw, axis=1, keepdims=True)
+    return names, xy, sig, hw, nw
+
+
+def _layout(obs: ImageObservation, rig: Rig, options: EstimationOptions) -> _Layout:
+    """Index the observation's hits against the rig: FCM lasers, PCM pairs, rig σ."""
+    names, xy, sig, hw, nw = _hit_arrays(obs, rig)
+    beams: dict[str, _Beam] = {}
+    rig_sigma: list[float] = []
+    for las in rig.lasers:
+        if las.origin is None or las.direction is None:
+            continue
+        beams[las.name] = _Beam(las.origin, las.direction, _tilt_basis(las.direction),
+                                len(rig_sigma))
+        on = float(options.include_rig_uncertainty)
+        rig_sigma += [on * las.sigma_origin] * 2 + [on * las.sigma_direction] * 2
+    fcms = tuple(_Fcm(n, names.index(n), b) for n, b in beams.items() if n in names)
+    pairs = tuple(
+        _Pair(f"{a}+{b}", (names.index(a), names.index(b)), p.separation,
+              (beams[a], beams[b]) if a in beams and b in beams else None)
+        for p in rig.pairs for a, b in [p.lasers] if a in names and b in names)
+    return _Layout(names, xy, sig, hw, nw, fcms, pairs, np.array(rig_sigma, np.float64))
+
+
+def _hits_cam(lay: _Layout, camera: Camera, dpx: F64, R: F64, t: F64) -> tuple[F64, F64]:
+    """(B, K, 3) camera-frame hits (model units) of perturbed rays on the tangent planes.
+
+    Also returns (B, K) |cos| of the ray–normal angle. The camera centre is the origin of the
+    camera frame, so the hit is λ·ray with λ = n_c·H_c / n_c·ray (plane through H_c, normal n_c).
+    """
+    b, k = dpx.shape[0], len(lay.names)
+    rays = camera.unproject((lay.xy[None] + dpx).reshape(b * k, 2)).reshape(b, k, 3)
+    n_c = np.einsum("bij,kj->bki", R, lay.normal_world)
+    h_c = np.einsum("bij,kj->bki", R, lay.hit_world) + t[:, None, :]
+    denom = np.sum(n_c * rays, axis=2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = np.sum(n_c * h_c, axis=2) / denom
+        cos_inc = np.abs(denom) / np.linalg.norm(rays, axis=2)
+    return rays * lam[..., None], cos_inc
+
+
+def _pair_rig_factor(pair: _Pair, x: F64, drig: F64, scale0: float) -> F64:
+    """(B,) relative change of the beams' perpendicular separation at the hits' ranges.
+
+    PCM and Direct 3D take the pair separation as exact; with calibrated lasers, an origin or
+    direction error changes the true separation of the two hit points (non-parallel beams).
+    Ranges along the beams come from the nominal hits (row 0) at the pair's nominal scale.
+    """
+    if pair.beams is None or not np.any(drig):
+        return np.ones(len(drig))
+    b1, b2 = pair.beams
+    axis = b1.direction + b2.direction
+    axis /= np.linalg.norm(axis)
+
+    def separation(dr: F64) -> F64:
+        (o1, v1), (o2, v2) = b1.perturbed(dr), b2.perturbed(dr)
+        r1 = scale0 * x[0, pair.hits[0], 2] / b1.direction[2]
+        r2 = scale0 * x[0, pair.hits[1], 2] / b2.direction[2]
+        d = (o2 + r2 * v2) - (o1 + r1 * v1)
+        return np.asarray(np.linalg.norm(d - (d @ axis)[:, None] * axis, axis=1))
+
+    return separation(drig) / separation(np.zeros((1, drig.shape[1])))
+
+
+def _outputs(lay: _Layout, x: F64, drig: F64) -> F64:
+    """(B, n_out) [FCM scales, FCM signed residuals (rad), PCM, Direct 3D]; row 0 nominal."""
+    out = np.empty((x.shape[0], lay.n_out))
+    nf, npair = len(lay.fcm), len(lay.pairs)
+    for i, f in enumerate(lay.fcm):
+        origin, v = f.beam.perturbed(drig)
+        out[:, i], out[:, nf + i] = fcm_scale_batch(x[:, f.hit], origin, v)
+    for j, p in enumerate(lay.pairs):
+        h1, h2 = x[:, p.hits[0]], x[:, p.hits[1]]
+        pcm = pcm_scale_batch(h1, h2, p.separation)
+        factor = _pair_rig_factor(p, x, drig, float(pcm[0]))
+        out[:, 2 * nf + j] = pcm * factor
+        out[:, 2 * nf + npair + j] = direct3d_scale_batch(h1, h2, p.separation) * factor
+    return out
+
+
+def _pose_sqrt(obs: ImageObservation) -> F64:
+    """(6, m) square root of the pose covariance (zero directions dropped)."""
+    cov = obs.pose_covariance
+    if cov is None:
+        return np.zeros((6, 0))
+    cov = np.asarray(cov, dtype=np.float64)
+    if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
+        raise InputError(f"image {obs.image}: pose covariance must be a finite 6×6 matrix")
+    cov = 0.5 * (cov + cov.T)
+    vals, vecs = np.linalg.eigh(cov)
+    if vals.min() < -1e-9 * max(float(vals.max()), 1e-300):
+        raise InputError(f"image {obs.image}: pose covariance is not positive semi-definite")
+    keep = vals > 1e-14 * max(float(vals.max()), 1e-300)
+    return np.asarray(vecs[:, keep] * np.sqrt(vals[keep]), dtype=np.float64)
+
+
+def _directions(lay: _Layout, pose_sqrt: F64) -> tuple[F64, NDArray[np.int64]]:
+    """(P, n) input-space σ directions and, per direction, its rig parameter index (−1: random)."""
+    k, r = len(lay.names), len(lay.rig_sigma)
+    p = 2 * k + 6 + r
+    cols: list[F64] = []
+    rig_idx: list[int] = []
+    for i in range(2 * k):
+        if lay.sigma_px[i // 2] > 0:
+            cols.append(np.eye(p)[i] * lay.sigma_px[i // 2])
+            rig_idx.append(-1)
+    for m in range(pose_sqrt.shape[1]):
+        col = np.zeros(p)
+        col[2 * k:2 * k + 6] = pose_sqrt[:, m]
+        cols.append(col)
+        rig_idx.append(-1)
+    for q in range(r):
+        if lay.rig_sigma[q] > 0:
+            cols.append(np.eye(p)[2 * k + 6 + q] * lay.rig_sigma[q])
+            rig_idx.append(q)
+    d = np.array(cols).T if cols else np.zeros((p, 0))
+    return d, np.array(rig_idx, dtype=np.int64)
+
+
+def _jacobian(lay: _Layout, obs: ImageObservation, options: EstimationOptions
+              ) -> tuple[F64, NDArray[np.int64], F64, F64]:
+    """J·D (n_out, n) by central differences along D's columns, rig index per column, and the
+    nominal camera-frame hits (K, 3) with their |cos| incidence (K,)."""
+    d, rig_idx = _directions(lay, _pose_sqrt(obs))
+    h = options.fd_step_sigma
+    deltas = np.vstack([np.zeros(d.shape[0]), h * d.T, -h * d.T])  # (1 + 2n, P), row 0 nominal
+    k = len(lay.names)
+    R, t = perturb_poses(obs.cam_from_world, deltas[:, 2 * k:2 * k + 6])
+    x, cos_inc = _hits_cam(lay, obs.camera, deltas[:, :2 * k].reshape(-1, k, 2), R, t)
+    f = _outputs(lay, x, deltas[:, 2 * k + 6:])
+    n = d.shape[1]
+    diff = f[1:1 + n] - f[1 + n:]
+    nf = len(lay.fcm)
+    diff[:, nf:2 * nf] = (diff[:, nf:2 * nf] + np.pi) % (2 * np.pi) - np.pi  # residual angles
+    return (diff / (2 * h)).T, rig_idx, x[0], cos_inc[0]
+
+
+def _split(jd: F64, rig_idx: NDArray[np.int64], n_rig: int) -> tuple[F64, F64]:
+    """Random covariance (n_out, n_out) and rig Jacobian (n_out, R) from J·D."""
+    a = jd[:, rig_idx < 0]
+    g = np.zeros((jd.shape[0], n_rig))
+    for col in np.flatnonzero(rig_idx >= 0):
+        g[:, rig_idx[col]] = jd[:, col]
+    return a @ a.T, g
+
+
+def _sigma(cov: F64, i: int) -> float:
+    v = float(cov[i, i])
+    return float(np.sqrt(v)) if np.isfinite(v) and v >= 0 else float("nan")
+
+
+def _grazing(lay: _Layout, cos_inc: F64, hits: tuple[int, ...], options: EstimationOptions
+             ) -> str | None:
+    """Reason when one of these hits' rays grazes the mesh, else None."""
+    for k in hits:
+        if not cos_inc[k] >= options.min_incidence_cos:
+            angle = float(np.degrees(np.arccos(min(float(cos_inc[k]), 1.0))))
+            return f"ray of laser {lay.names[k]} grazes the mesh (incidence {angle:.1f}°)"
+    return None
+
+
+def _residual_reason(laser: str, resid_deg: float, sigma_deg: float,
+                     options: EstimationOptions) -> str | None:
+    """FCM direction-residual check: far beyond what the propagated noise explains."""
+    limit = max(options.max_direction_residual_deg, options.direction_residual_nsigma * sigma_deg)
+    if resid_deg > limit or not np.isfinite(sigma_deg):
+        return (f"spot inconsistent with beam {laser} geometry "
+                "(wrong laser assignment or calibration)")
+    return None
+
+
+def _fcm_estimates(lay: _Layout, image: str, x0: F64, cos0: F64, cov: F64,
+                   options: EstimationOptions) -> list[Estimate]:
+    """FCM estimates (rows 0..nf−1 of the outputs; residual angles in rows nf..2nf−1)."""
+    nf = len(lay.fcm)
+    out: list[Estimate] = []
+    for i, f in enumerate(lay.fcm):
+        res = fcm_scale(x0[f.hit], f.beam.origin, f.beam.direction)
+        sigma = _sigma(cov, i)
+        reason = res.reason or _grazing(lay, cos0, (f.hit,), options)
+        if reason is None and not np.isfinite(sigma):
+            reason = "uncertainty could not be propagated (non-finite sigma)"
+        if reason is None:
+            sigma_res = float(np.degrees(_sigma(cov, nf + i)))
+            reason = _residual_reason(f.laser, res.direction_residual_deg, sigma_res, options)
+        depth = res.scale * float(np.linalg.norm(x0[f.hit]))
+        out.append(Estimate(image, "fcm", f.laser, res.scale, sigma,
+                            res.direction_residual_deg if res.valid else None, depth,
+                            reason is not None, reason))
+    return out
+
+
+def _pair_estimates(lay: _Layout, image: str, x0: F64, cos0: F64, cov: F64,
+                    options: EstimationOptions) -> list[Estimate]:
+    """PCM and Direct 3D estimates of each pair with both hits."""
+    nf, npair = len(lay.fcm), len(lay.pairs)
+    pcm: list[Estimate] = []
+    d3: list[Estimate] = []
+    for j, p in enumerate(lay.pairs):
+        h1, h2 = x0[p.hits[0]], x0[p.hits[1]]
+        res = pcm_scale(h1, h2, p.separation)
+        graze = _grazing(lay, cos0, p.hits, options)
+        mid = float(np.linalg.norm(0.5 * (h1 + h2)))
+        for method, value, row, dest, reason in (
+            ("pcm", res.scale, 2 * nf + j, pcm, res.reason or graze),
+            ("direct3d", direct3d_scale(h1, h2, p.separation), 2 * nf + npair + j, d3,
+             res.reason or graze),
+        ):
+            sigma = _sigma(cov, row)
+            if reason is None and not (np.isfinite(value) and np.isfinite(sigma)):
+                reason = "non-finite estimate or sigma"
+            dest.append(Estimate(image, method, p.name, float(value), sigma, None,
+                                 float(value) * mid, reason is not None, reason))
+    return pcm + d3
+
+
+def _per_method(lay: _Layout, matrix: F64, estimates: list[Estimate], square: bool
+                ) -> dict[str, F64]:
+    """Split an (n_out, ·) output matrix into per-method blocks; invalid rows become NaN."""
+    nf, npair = len(lay.fcm), len(lay.pairs)
+    rows = {"fcm": np.arange(nf), "pcm": 2 * nf + np.arange(npair),
+            "direct3d": 2 * nf + npair + np.arange(npair)}
+    blocks: dict[str, F64] = {}
+    for method, idx in rows.items():
+        block = matrix[np.ix_(idx, idx)] if square else matrix[idx]
+        block = np.array(block, dtype=np.float64)
+        bad = [i for i, e in enumerate(e for e in estimates if e.method == method)
+               if not np.isfinite(e.scale)]
+        block[bad] = np.nan
+        if square:
+            block[:, bad] = np.nan
+        blocks[method] = block
+    return blocks
+
+
+def _check_hits_on_rays(lay: _Layout, obs: ImageObservation, x0: F64) -> None:
+    """Warn when a mesh hit does not lie on its spot's ray (inconsistent inputs)."""
+    given = obs.cam_from_world.transform(lay.hit_world)
+    off = np.linalg.norm(given - x0, axis=1) / np.linalg.norm(given, axis=1)
+    for k in np.flatnonzero(~(off < 1e-3)):
+        logger.warning("image %s laser %s: mesh hit is %.2g (relative) off the spot's ray",
+                       obs.image, lay.names[k], off[k])
+
+
+def estimate_image(obs: ImageObservation, rig: Rig, options: EstimationOptions
+                   ) -> ImageEstimates:
+    """FCM per calibrated laser, PCM and Direct 3D per pair, with joint first-order covariance."""
+    lay = _layout(obs, rig, options)
+    names = rig_parameter_names(rig)
+    if lay.n_out == 0:
+        empty = {m: np.zeros((0, 0)) for m in METHODS}
+        return ImageEstimates(obs.image, (), empty, dict(empty),
+                              {m: np.zeros((0, len(names))) for m in METHODS}, names)
+    jd, rig_idx, x0, cos0 = _jacobian(lay, obs, options)
+    c_rand, g = _split(jd, rig_idx, len(lay.rig_sigma))
+    c_tot = c_rand + g @ g.T
+    _check_hits_on_rays(lay, obs, x0)
+    ests = _fcm_estimates(lay, obs.image, x0, cos0, c_tot, options)
+    ests += _pair_estimates(lay, obs.image, x0, cos0, c_tot, options)
+    return ImageEstimates(obs.image, tuple(ests), _per_method(lay, c_tot, ests, True),
+                          _per_method(lay, c_rand, ests, True),
+                          _per_method(lay, g, ests, False), names)
