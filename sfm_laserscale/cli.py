@@ -50,7 +50,9 @@ class GreedyCommand(click.Command):
 
 
 def _setup_logging(verbose: bool, quiet: bool) -> None:
-    level = logging.DEBUG if verbose else (logging.WARNING if quiet else logging.INFO)
+    # The terminal gets warnings and errors only (stderr stays one line on bad input);
+    # --verbose shows every step. --quiet also turns progress bars off.
+    level = logging.DEBUG if verbose else (logging.ERROR if quiet else logging.WARNING)
     root = logging.getLogger()
     for h in list(root.handlers):
         if getattr(h, "_sfm_laserscale", False):
@@ -62,6 +64,9 @@ def _setup_logging(verbose: bool, quiet: bool) -> None:
     root.addHandler(handler)
     root.setLevel(logging.DEBUG)
     logging.getLogger("sfm_laserscale").setLevel(logging.DEBUG)
+    from sfm_laserscale.registration import configure_colmap_logging
+
+    configure_colmap_logging(verbose)
 
 
 def common_options(func: Callable[..., int]) -> Callable[..., None]:

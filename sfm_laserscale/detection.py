@@ -42,6 +42,8 @@ logger = logging.getLogger(__name__)
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
+#: an image as three contiguous (H, W) float32 planes R, G, B in [0, 1]
+Channels = tuple[F32, F32, F32]
 CHANNELS: dict[str, int] = {"red": 0, "green": 1, "blue": 2}
 UNCALIBRATED_REASON = "uncalibrated laser: give its spots with --spots"
 _INADMISSIBLE = 1e6
@@ -80,7 +82,6 @@ class DetectionOptions:
     min_score: float = 0.25
     snr_half: float = 10.0
     refine: str = "centroid"
-    refine_signal: str = "laser"
     sigma_floor_px: float = 0.05
     saturation_level: float = 250.0 / 255.0
     max_candidates: int = 100
@@ -206,17 +207,23 @@ def distance_to_polyline(xy: F64, polyline: F64) -> F64:
 # ----------------------------------------------------------------------------- responses
 
 
-def colour_difference(image: F32, color: str, saturation_level: float) -> F32:
+def _laser_and_other(channels: Channels, color: str) -> tuple[F32, F32]:
+    """The laser's channel and the per-pixel max of the two others."""
+    c = CHANNELS[color]
+    o1, o2 = [channels[i] for i in range(3) if i != c]
+    return channels[c], np.maximum(o1, o2)
+
+
+def colour_difference(channels: Channels, color: str, saturation_level: float) -> F32:
     """(H, W) laser-colour response: channel minus the max of the others, clipped cores filled.
 
     Pixels whose laser channel is clipped get at least the largest colour difference found in a
     ring (as wide as the clipped region's equivalent radius, 2–12 px) around their clipped
     region: a saturated laser core inherits its coloured halo, a white highlight gets ~0.
     """
-    c = CHANNELS[color]
-    o1, o2 = [i for i in range(3) if i != c]
-    diff = image[..., c] - np.maximum(image[..., o1], image[..., o2])
-    clipped = image[..., c] >= saturation_level
+    laser, other = _laser_and_other(channels, color)
+    diff = laser - other
+    clipped = laser >= saturation_level
     if not np.any(clipped):
         return np.asarray(diff, dtype=np.float32)
     # distance of every unclipped pixel to the nearest clipped one, with that region's label
@@ -266,11 +273,12 @@ def blob_response(resp: F32, sigmas: tuple[float, ...]) -> F32:
     return out
 
 
-def _local_maxima(dog: F32, min_value: float, max_count: int) -> NDArray[np.intp]:
+def _local_maxima(dog: F32, min_value: float) -> NDArray[np.intp]:
     """(N, 2) integer (row, col) of 5×5 local maxima above ``min_value``, strongest first."""
-    peaks = (dog >= ndimage.maximum_filter(dog, size=5, mode="nearest")) & (dog > min_value)
+    dilated = cv2.dilate(dog, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    peaks = (dog >= dilated) & (dog > min_value)
     rows, cols = np.nonzero(peaks)
-    order = np.argsort(-dog[rows, cols], kind="stable")[:max_count]
+    order = np.argsort(-dog[rows, cols], kind="stable")
     return np.column_stack([rows[order], cols[order]])
 
 
@@ -359,48 +367,89 @@ def _shape_and_contrast(
 # ----------------------------------------------------------------------------- sub-pixel
 
 
-def _plane_background(patch: F64, mask: NDArray[np.bool_], gx: F64, gy: F64) -> F64:
-    """Least-squares plane a + b x + c y fitted to ``patch[mask]`` (one trimming pass)."""
-    A = np.column_stack([np.ones(mask.sum()), gx[mask], gy[mask]])
-    b = patch[mask]
-    coef = np.linalg.lstsq(A, b, rcond=None)[0]
-    res = b - A @ coef
-    keep = np.abs(res) <= 2.5 * max(_robust_std(res), 1e-6)
-    if keep.sum() >= 3:
-        coef = np.linalg.lstsq(A[keep], b[keep], rcond=None)[0]
-    return np.asarray(coef[0] + coef[1] * gx + coef[2] * gy, dtype=np.float64)
+@dataclass(frozen=True)
+class SpotPatch:
+    """Background- and texture-free spot signal in a window around one candidate.
+
+    ``gx``/``gy``: pixel centres (COLMAP convention); ``signal``: laser channel minus its local
+    prediction from the other channels and a plane (so the scene's texture, which shows in every
+    channel, cancels), laser-clipped pixels set to the highest unclipped value inside the
+    support (a flat top); ``usable``: no channel clipped; ``noise``: robust std of the signal on
+    the background ring; ``support_px``: radius of the spot support.
+    """
+
+    gx: F64
+    gy: F64
+    signal: F64
+    usable: NDArray[np.bool_]
+    noise: float
+    support_px: float
+
+
+def _texture_model(
+    laser: F64, other: F64, gx: F64, gy: F64, ring: NDArray[np.bool_]
+) -> F64:
+    """Fit laser ≈ c0 + cx x + cy y + a·other on ``ring`` (ridge on a, one trim); return the fit."""
+    x_c, y_c = float(gx.mean()), float(gy.mean())
+    A = np.column_stack([np.ones(ring.sum()), gx[ring] - x_c, gy[ring] - y_c, other[ring]])
+    b = laser[ring]
+    # ridge row: with no texture in the ring, ``a`` is undetermined and should stay 0
+    ridge = math.sqrt(len(b)) * 0.01
+    keep = np.ones(len(b), dtype=bool)
+    coef = np.zeros(4)
+    for _ in range(2):
+        A_r = np.vstack([A[keep], [0.0, 0.0, 0.0, ridge]])
+        b_r = np.concatenate([b[keep], [0.0]])
+        coef = np.linalg.lstsq(A_r, b_r, rcond=None)[0]
+        res = b - A @ coef
+        keep = np.abs(res) <= 3.0 * max(_robust_std(res), 1e-6)
+        if keep.sum() < 6:
+            break
+    coef[3] = min(max(coef[3], 0.0), 1.5)
+    return np.asarray(coef[0] + coef[1] * (gx - x_c) + coef[2] * (gy - y_c) + coef[3] * other)
+
+
+def spot_patch(planes: _Planes, x0: float, y0: float, support_px: float) -> SpotPatch | None:
+    """The texture-free signal around (x0, y0) (COLMAP px); None when too close to nothing."""
+    radius = int(math.ceil(support_px)) + 4
+    win = _window(planes.laser.shape, int(math.floor(y0)), int(math.floor(x0)), radius)
+    gx, gy = _grid(win)
+    rr = np.hypot(gx - x0, gy - y0)
+    clipped_l = planes.clipped_laser[win]
+    ring = (rr >= support_px) & ~planes.clipped_any[win]
+    if ring.sum() < 8:
+        return None
+    laser = planes.laser[win].astype(np.float64)
+    sig = laser - _texture_model(laser, planes.other[win].astype(np.float64), gx, gy, ring)
+    inner_ok = (rr < support_px) & ~clipped_l
+    if clipped_l.any():
+        sig[clipped_l] = float(sig[inner_ok].max()) if inner_ok.any() else float(sig.max())
+    return SpotPatch(gx=gx, gy=gy, signal=sig, usable=~planes.clipped_any[win],
+                     noise=_robust_std(sig[ring]), support_px=support_px)
 
 
 def refine_centroid(
-    signal: F32, x0: float, y0: float, sigma_w: float, iterations: int = 30
+    patch: SpotPatch, x0: float, y0: float, sigma_w: float, iterations: int = 50
 ) -> tuple[float, float, float]:
-    """Gaussian-windowed, background-subtracted centroid (x, y, 1-sigma noise, COLMAP px).
+    """Gaussian-windowed centroid of a :class:`SpotPatch`: (x, y, 1-sigma noise), COLMAP px.
 
-    The window (sigma ``sigma_w``) follows the estimate until it stops moving; for any
-    point-symmetric spot the true centre is the fixed point, so the estimate is unbiased. The
-    background is a plane fitted to a ring just outside the window. The returned sigma is the
-    centroid's noise propagated from the ring's residual scatter.
+    The window (sigma ``sigma_w``, cut at the support radius) follows the estimate until it
+    stops moving; for any point-symmetric spot the true centre is the fixed point, so the
+    estimate is unbiased. The sigma is the ring noise propagated through the centroid.
     """
-    radius = int(math.ceil(3.0 * sigma_w)) + 1
     x, y = x0, y0
+    pos = np.clip(patch.signal, 0.0, None)
     noise_var = 0.0
     for _ in range(iterations):
-        win = _window(signal.shape, int(math.floor(y)), int(math.floor(x)), radius + 3)
-        gx, gy = _grid(win)
-        patch = signal[win].astype(np.float64)
-        rr2 = (gx - x) ** 2 + (gy - y) ** 2
-        ring = rr2 >= radius * radius
-        bg = _plane_background(patch, ring, gx, gy) if ring.sum() >= 6 else np.zeros_like(patch)
-        sig = np.clip(patch - bg, 0.0, None)
-        g = np.exp(-0.5 * rr2 / (sigma_w * sigma_w)) * (~ring)
-        w = sig * g
+        rr2 = (patch.gx - x) ** 2 + (patch.gy - y) ** 2
+        g = np.exp(-0.5 * rr2 / (sigma_w * sigma_w)) * (rr2 < patch.support_px**2)
+        w = pos * g
         total = float(w.sum())
         if total <= 0:
             break
-        nx, ny = float((w * gx).sum() / total), float((w * gy).sum() / total)
-        sigma_n = _robust_std((patch - bg)[ring]) if ring.sum() >= 6 else 0.0
-        noise_var = sigma_n**2 * float((g * g * ((gx - nx) ** 2 + (gy - ny) ** 2)).sum()) / (
-            2.0 * total * total)
+        nx, ny = float((w * patch.gx).sum() / total), float((w * patch.gy).sum() / total)
+        spread = float((g * g * ((patch.gx - nx) ** 2 + (patch.gy - ny) ** 2)).sum())
+        noise_var = patch.noise**2 * spread / (2.0 * total * total)
         moved = math.hypot(nx - x, ny - y)
         x, y = nx, ny
         if moved < 1e-5:
@@ -409,56 +458,58 @@ def refine_centroid(
 
 
 def refine_gaussian(
-    signal: F32, clipped: NDArray[np.bool_], x0: float, y0: float, sigma0: float
+    patch: SpotPatch, x0: float, y0: float, sigma0: float
 ) -> tuple[float, float, float]:
-    """2D Gaussian + plane fit to the unclipped pixels near (x0, y0): (x, y, 1-sigma, COLMAP px).
+    """2D Gaussian fit to the unclipped support pixels of a :class:`SpotPatch`: (x, y, 1-sigma).
 
-    Clipped pixels (``clipped`` True) are left out, so a saturated core does not flatten the
-    fitted profile; the flanks of the spot carry its position.
+    Clipped pixels are left out, so a saturated core does not flatten the fitted profile; the
+    flanks of the spot carry its position.
     """
-    radius = int(math.ceil(3.5 * sigma0)) + 2
-    win = _window(signal.shape, int(math.floor(y0)), int(math.floor(x0)), radius)
-    gx, gy = _grid(win)
-    patch = signal[win].astype(np.float64)
-    use = ~clipped[win]
+    use = patch.usable & ((patch.gx - x0) ** 2 + (patch.gy - y0) ** 2 < patch.support_px**2)
     if use.sum() < 8:
         return x0, y0, 1.0
-    px, py, pv = gx[use], gy[use], patch[use]
+    px, py, pv = patch.gx[use], patch.gy[use], patch.signal[use]
 
-    def model(p: F64) -> F64:
-        a, x, y, s, b0, bx, by = p
+    def residual(p: F64) -> F64:
+        a, x, y, s, b0 = p
         g = a * np.exp(-0.5 * ((px - x) ** 2 + (py - y) ** 2) / (s * s))
-        return np.asarray(g + b0 + bx * (px - x0) + by * (py - y0), dtype=np.float64)
+        return np.asarray(g + b0 - pv, dtype=np.float64)
 
-    base = float(np.percentile(pv, 10))
-    p0 = np.array([max(patch.max() - base, 1e-3) * 1.5, x0, y0, sigma0, base, 0.0, 0.0])
-    fit = least_squares(lambda p: model(p) - pv, p0, method="lm", max_nfev=200)
+    p0 = np.array([max(float(patch.signal.max()), 1e-3), x0, y0, sigma0, 0.0])
+    fit = least_squares(residual, p0, method="lm", max_nfev=300)
     x, y = float(fit.x[1]), float(fit.x[2])
-    if not (fit.success and math.hypot(x - x0, y - y0) < radius):
+    if not (fit.success and math.hypot(x - x0, y - y0) < patch.support_px):
         return x0, y0, 1.0
-    dof = max(len(pv) - 7, 1)
-    s2 = float(fit.fun @ fit.fun) / dof
+    s2 = float(fit.fun @ fit.fun) / max(len(pv) - 5, 1)
     try:
         cov = np.linalg.inv(fit.jac.T @ fit.jac) * s2
-        sig = math.sqrt(max(0.5 * (cov[1, 1] + cov[2, 2]), 0.0))
     except np.linalg.LinAlgError:
-        sig = 1.0
-    return x, y, sig
+        return x, y, 1.0
+    return x, y, math.sqrt(max(0.5 * (cov[1, 1] + cov[2, 2]), 0.0))
 
 
 # ----------------------------------------------------------------------------- candidates
 
 
-def _check_image(image_rgb: NDArray[np.uint8], camera: Camera) -> F32:
-    """Validate the image against its camera; return it as float32 in [0, 1]."""
+def _check_image(image_rgb: NDArray[np.uint8], camera: Camera) -> None:
+    """Validate the image against its camera (shape, size, dtype)."""
     if image_rgb.ndim != 3 or image_rgb.shape[2] != 3:
         raise InputError(f"laser image must be RGB (H, W, 3), got shape {image_rgb.shape}")
     if image_rgb.shape[:2] != (camera.height, camera.width):
         raise InputError(
             f"laser image is {image_rgb.shape[1]}x{image_rgb.shape[0]} px but its camera is "
             f"{camera.width}x{camera.height} px")
-    scale = 255.0 if image_rgb.dtype == np.uint8 else 1.0
-    return np.asarray(image_rgb, dtype=np.float32) / np.float32(scale)
+    if image_rgb.dtype != np.uint8:
+        raise InputError(f"laser image must be 8-bit (uint8), got {image_rgb.dtype}")
+
+
+def _channels(image_rgb: NDArray[np.uint8], roi: tuple[int, int, int, int]) -> Channels:
+    """The (x0, y0, x1, y1) crop of an RGB uint8 image as three float32 planes in [0, 1]."""
+    x0, y0, x1, y1 = roi
+    crop = np.ascontiguousarray(image_rgb[y0:y1, x0:x1])
+    r, g, b = (np.multiply(ch, np.float32(1.0 / 255.0), dtype=np.float32)
+               for ch in cv2.split(crop))
+    return r, g, b
 
 
 @dataclass(frozen=True)
@@ -466,27 +517,32 @@ class _Planes:
     """Per-colour full-resolution arrays shared by all candidates of that colour."""
 
     resp: F32  # (H, W) colour-difference response (clipped cores filled)
-    signal: F32  # (H, W) intensity used for sub-pixel refinement
-    clipped: NDArray[np.bool_]  # (H, W) any channel clipped
+    laser: F32  # (H, W) the laser's channel
+    other: F32  # (H, W) max of the two other channels
+    clipped_laser: NDArray[np.bool_]  # (H, W) laser channel clipped
+    clipped_any: NDArray[np.bool_]  # (H, W) any channel clipped
 
 
-def _planes(img: F32, color: str, options: DetectionOptions) -> _Planes:
-    """Colour response, refinement signal and clipped mask for one laser colour."""
-    resp = colour_difference(img, color, options.saturation_level)
-    if options.refine_signal == "sum":
-        signal = np.asarray(img.sum(axis=2), dtype=np.float32)
-    else:
-        signal = np.ascontiguousarray(img[..., CHANNELS[color]])
-    clipped = np.asarray(img.max(axis=2) >= options.saturation_level)
-    return _Planes(resp=resp, signal=signal, clipped=clipped)
+def _planes(channels: Channels, color: str, options: DetectionOptions) -> _Planes:
+    """Colour response, channels and clipped masks for one laser colour."""
+    laser, other = _laser_and_other(channels, color)
+    brightest = np.maximum(laser, other)
+    return _Planes(
+        resp=colour_difference(channels, color, options.saturation_level), laser=laser,
+        other=other, clipped_laser=np.asarray(laser >= options.saturation_level),
+        clipped_any=np.asarray(brightest >= options.saturation_level),
+    )
 
 
 def _refine(planes: _Planes, m: _Measure, options: DetectionOptions) -> tuple[float, float, float]:
-    """Sub-pixel centre and localisation sigma of one candidate (COLMAP px)."""
+    """Sub-pixel centre and localisation sigma of one candidate (COLMAP px); NaN if impossible."""
     sigma_w = max(1.0, m.radius_px)
+    patch = spot_patch(planes, m.x, m.y, max(3.0 * sigma_w, 4.0))
+    if patch is None:
+        return math.nan, math.nan, math.nan
     if options.refine == "gaussian":
-        return refine_gaussian(planes.signal, planes.clipped, m.x, m.y, sigma_w)
-    return refine_centroid(planes.signal, m.x, m.y, sigma_w)
+        return refine_gaussian(patch, m.x, m.y, sigma_w)
+    return refine_centroid(patch, m.x, m.y, sigma_w)
 
 
 def _measure_peak(
@@ -506,7 +562,7 @@ def _measure_peak(
         m.rejected = why
         return m
     x, y, sig = _refine(planes, m, options)
-    if math.hypot(x - m.x, y - m.y) > max(2.0, 1.5 * radius):
+    if not math.hypot(x - m.x, y - m.y) <= max(2.0, 1.5 * radius):  # also NaN
         m.rejected = "sub-pixel refinement diverged"
         return m
     m.x, m.y = x, y
@@ -516,22 +572,39 @@ def _measure_peak(
 
 
 def _candidates_for_colour(
-    img: F32, color: str, options: DetectionOptions, max_radius: float
+    channels: Channels, color: str, options: DetectionOptions, region: _SearchRegion
 ) -> list[_Measure]:
-    """All local maxima of one colour's blob response, measured and refined."""
-    planes = _planes(img, color, options)
+    """Local maxima of one colour's blob response, measured and refined (image COLMAP px).
+
+    Maxima outside the beam bands (when every laser is calibrated) are listed, not measured.
+    """
+    planes = _planes(channels, color, options)
     dog = blob_response(planes.resp, options.spot_sigmas_px)
-    threshold = max(4.0 * _robust_std(dog[::4, ::4]), 2.0 / 255.0)
+    threshold = max(4.0 * _robust_std(dog[::4, ::4]), 4.0 / 255.0)
     out: list[_Measure] = []
-    for row, col in _local_maxima(dog, threshold, options.max_candidates):
-        m = _measure_peak(planes, (int(row), int(col)), float(dog[row, col]), color,
-                          options, max_radius)
+    far: list[_Measure] = []
+    for row, col in _local_maxima(dog, threshold):
+        row, col = int(row), int(col)
+        if region.near is not None and not region.near[row, col]:
+            if len(far) < options.max_candidates:
+                far.append(_Measure(x=col + 0.5, y=row + 0.5, color=color,
+                                    response=float(dog[row, col]),
+                                    rejected="off every beam band (not measured)"))
+            continue
+        if len(out) >= options.max_candidates:
+            continue
+        m = _measure_peak(planes, (row, col), float(dog[row, col]), color, options,
+                          region.max_radius)
         dup = next((o for o in out if o.rejected is None and m.rejected is None
                     and math.hypot(o.x - m.x, o.y - m.y) < max(2.0, o.radius_px)), None)
         if dup is not None:
             m.rejected = f"duplicate of the stronger maximum at ({dup.x:.1f}, {dup.y:.1f})"
         out.append(m)
-    return out
+    x0, y0 = region.roi[:2]
+    for m in out + far:  # crop -> image coordinates
+        m.x += x0
+        m.y += y0
+    return out + far
 
 
 def _colours_needed(rig: Rig) -> list[str]:
@@ -560,9 +633,10 @@ def _any_colour(laser: Laser, valid: list[_Measure], dist: F64, band: float) -> 
 
 
 def _laser_costs(
-    rig: Rig, camera: Camera, valid: list[_Measure], options: DetectionOptions, band: float
+    rig: Rig, region: _SearchRegion, valid: list[_Measure], options: DetectionOptions
 ) -> tuple[F64, F64, dict[str, str]]:
     """(L, N) assignment cost -log(score) and distance to beam for calibrated lasers."""
+    band = region.band_px
     xy = np.array([[m.x, m.y] for m in valid]).reshape(-1, 2)
     base = np.array([m.base_score for m in valid])
     cost = np.full((len(rig.lasers), len(valid)), _INADMISSIBLE)
@@ -571,7 +645,7 @@ def _laser_costs(
     for i, las in enumerate(rig.lasers):
         if not las.calibrated:
             continue
-        line = beam_polyline_px(camera, las, options.min_range_m, options.max_range_m)
+        line = region.polylines[las.name]
         if len(line) == 0:
             unseen[las.name] = (f"its beam ({options.min_range_m:g}–{options.max_range_m:g} m) "
                                 "is outside the image")
@@ -595,10 +669,11 @@ def _missing_reason(las: Laser, li: int, valid: list[_Measure], dist: F64, band:
 
 
 def _assign_calibrated(
-    rig: Rig, camera: Camera, valid: list[_Measure], options: DetectionOptions, band: float
+    rig: Rig, region: _SearchRegion, valid: list[_Measure], options: DetectionOptions
 ) -> tuple[dict[str, int], dict[str, str], F64]:
     """Laser name -> index into ``valid`` by linear assignment; missing reasons; distances."""
-    cost, dist, missing = _laser_costs(rig, camera, valid, options, band)
+    band = region.band_px
+    cost, dist, missing = _laser_costs(rig, region, valid, options)
     chosen: dict[str, int] = {}
     rows, cols = linear_sum_assignment(cost) if cost.size else (np.array([]), np.array([]))
     for li, cj in zip(rows.tolist(), cols.tolist(), strict=True):
@@ -674,23 +749,66 @@ def _explain_unused(rig: Rig, valid: list[_Measure], dist: F64, band: float) -> 
 # ----------------------------------------------------------------------------- entry point
 
 
+@dataclass(frozen=True)
+class _SearchRegion:
+    """Where to look: crop of the image, beam polylines and the near-band mask (crop pixels)."""
+
+    roi: tuple[int, int, int, int]  # x0, y0, x1, y1 (array indices, end exclusive)
+    polylines: dict[str, F64]  # calibrated laser -> (K, 2) beam segment, image COLMAP px
+    near: NDArray[np.bool_] | None  # (y1-y0, x1-x0) within reach of a band; None = everywhere
+    band_px: float
+    max_radius: float
+
+
+def _search_region(camera: Camera, rig: Rig, options: DetectionOptions) -> _SearchRegion:
+    """Whole image if a laser is uncalibrated, else the beam bands' bounding box plus margins."""
+    band = options.band_px or default_band_px(camera.width, camera.height)
+    max_radius = options.max_spot_radius_px or default_max_spot_radius_px(
+        camera.width, camera.height)
+    polylines = {las.name: beam_polyline_px(camera, las, options.min_range_m, options.max_range_m)
+                 for las in rig.lasers if las.calibrated}
+    full = (0, 0, camera.width, camera.height)
+    if not all(las.calibrated for las in rig.lasers):
+        return _SearchRegion(full, polylines, None, band, max_radius)
+    pts = [p for p in polylines.values() if len(p)]
+    if not pts:
+        return _SearchRegion((0, 0, 0, 0), polylines, None, band, max_radius)
+    allp = np.concatenate(pts)
+    margin = band + 2.0 * max_radius + 4.0 * max(options.spot_sigmas_px) + 4.0
+    lo = np.floor(allp.min(axis=0) - margin).astype(int)
+    hi = np.ceil(allp.max(axis=0) + margin).astype(int)
+    x0, y0 = max(0, int(lo[0])), max(0, int(lo[1]))
+    x1, y1 = min(camera.width, int(hi[0])), min(camera.height, int(hi[1]))
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return _SearchRegion((0, 0, 0, 0), polylines, None, band, max_radius)
+    near = np.zeros((y1 - y0, x1 - x0), dtype=np.uint8)
+    for line in pts:
+        # COLMAP px -> array index coordinates of the crop: subtract 0.5 and the crop origin
+        idx = np.round((line - 0.5 - [x0, y0]) * 16).astype(np.int32).reshape(-1, 1, 2)
+        cv2.polylines(near, [idx], False, 255, thickness=2 * int(math.ceil(band)) + 5,
+                      shift=4)
+    return _SearchRegion((x0, y0, x1, y1), polylines, near > 0, band, max_radius)
+
+
 def detect_spots(
     image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
     options: DetectionOptions = DetectionOptions(),  # noqa: B008 (frozen dataclass)
 ) -> DetectionResult:
     """Detect laser spots in one image and assign them to the rig's lasers."""
-    img = _check_image(image_rgb, camera)
-    band = options.band_px or default_band_px(camera.width, camera.height)
-    max_radius = options.max_spot_radius_px or default_max_spot_radius_px(
-        camera.width, camera.height)
-    measures = [m for color in _colours_needed(rig)
-                for m in _candidates_for_colour(img, color, options, max_radius)]
+    _check_image(image_rgb, camera)
+    region = _search_region(camera, rig, options)
+    measures: list[_Measure] = []
+    x0, y0, x1, y1 = region.roi
+    if x1 > x0 and y1 > y0:
+        channels = _channels(image_rgb, region.roi)
+        for color in _colours_needed(rig):
+            measures += _candidates_for_colour(channels, color, options, region)
     valid = [m for m in measures if m.rejected is None]
-    chosen, missing, dist = _assign_calibrated(rig, camera, valid, options, band)
+    chosen, missing, dist = _assign_calibrated(rig, region, valid, options)
     chosen_u, missing_u = _assign_uncalibrated(rig, valid, set(chosen.values()), options)
     chosen.update(chosen_u)
     missing.update(missing_u)
-    _explain_unused(rig, valid, dist, band)
+    _explain_unused(rig, valid, dist, region.band_px)
     spots = tuple(
         Spot(laser=name, x=valid[j].x, y=valid[j].y, score=float(np.clip(valid[j].score, 0, 1)),
              sigma_px=valid[j].sigma_px, source="detected")

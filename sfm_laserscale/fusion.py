@@ -94,15 +94,14 @@ class FusedScale:
 
 def _gls(values: F64, cov: F64) -> tuple[F64, float]:
     """GLS weights (n,) (summing to 1) and the χ² of values about the weighted mean."""
-    ones = np.ones(len(values))
+    rhs = np.column_stack([np.ones(len(values)), values])
     try:
-        cinv_1 = np.linalg.solve(cov, ones)
-        cinv_v = np.linalg.solve(cov, values)
+        sol = np.linalg.solve(cov, rhs)
     except np.linalg.LinAlgError:
-        pinv = np.linalg.pinv(cov)
-        cinv_1, cinv_v = pinv @ ones, pinv @ values
-    w = cinv_1 / (ones @ cinv_1)
-    chi2 = float(values @ cinv_v - (ones @ cinv_v) ** 2 / (ones @ cinv_1))
+        sol = np.linalg.pinv(cov) @ rhs
+    cinv_1, cinv_v = sol[:, 0], sol[:, 1]
+    w = cinv_1 / cinv_1.sum()
+    chi2 = float(values @ cinv_v - cinv_v.sum() ** 2 / cinv_1.sum())
     return w, (max(chi2, 0.0) if np.isfinite(chi2) else 0.0)
 
 
@@ -208,7 +207,7 @@ def _birge(combos: list[ImageCombination], w: F64, g: F64) -> tuple[float, int]:
     p = np.eye(n) - np.outer(np.ones(n), w)
     r = p @ v
     chi2 = float(r @ np.linalg.pinv(p @ cov @ p.T, rcond=1e-10, hermitian=True) @ r)
-    return float(np.sqrt(chi2 / (n - 1))), n - 1
+    return float(np.sqrt(max(chi2, 0.0) / (n - 1))), n - 1
 
 
 def _nothing(method: str, reason: str, n_rej: int, rejected: list[tuple[str, str, str]],

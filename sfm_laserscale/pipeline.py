@@ -21,7 +21,7 @@ from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
 from sfm_laserscale.io.meshes import TriangleMesh, load_mesh
 from sfm_laserscale.io.models import load_model, load_model_features
 from sfm_laserscale.io.spots_csv import read_spots_csv
-from sfm_laserscale.model import Camera, SparseModel, Spot
+from sfm_laserscale.model import Camera, Pose, SparseModel, Spot
 from sfm_laserscale.raycast import MeshRaycaster, pixel_rays
 from sfm_laserscale.registration import (
     DescriptorIndex,
@@ -160,114 +160,77 @@ def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
 
 
 def _spots_for(
-    image: LaserImage, rgb: np.ndarray, loaded: LoadedInputs, options: ScaleOptions
+    name: str, rgb: np.ndarray, camera: Camera, loaded: LoadedInputs, options: ScaleOptions
 ) -> tuple[tuple[Spot, ...], DetectionResult | None, dict[str, str]]:
-    manual = loaded.manual_spots.get(image.name)
+    manual = loaded.manual_spots.get(name)
     if manual is not None:
         given = {s.laser for s in manual}
         missing = {n: "not given in --spots" for n in loaded.rig.names if n not in given}
         return tuple(manual), None, missing
-    det = detect_spots(rgb, image.camera, loaded.rig, options.detection)
+    det = detect_spots(rgb, camera, loaded.rig, options.detection)
     return det.spots, det, dict(det.missing)
 
 
 def _cast_spots(
-    spots: Sequence[Spot], image: LaserImage, reg: RegistrationResult, caster: MeshRaycaster
+    spots: Sequence[Spot], camera: Camera, cam_from_world: Pose, caster: MeshRaycaster
 ) -> tuple[tuple[SpotHit, ...], dict[str, str]]:
-    if not spots or reg.cam_from_world is None:
+    if not spots:
         return (), {}
     xy = np.array([[s.x, s.y] for s in spots], dtype=np.float64)
-    origins, dirs = pixel_rays(image.camera, reg.cam_from_world.inverse(), xy)
-    res = caster.cast(origins, dirs)
+    res = caster.cast(*pixel_rays(camera, cam_from_world.inverse(), xy))
     hits: list[SpotHit] = []
     reasons: dict[str, str] = {}
     for i, spot in enumerate(spots):
         if not res.hit[i]:
             reasons[spot.laser] = "ray through the spot misses the mesh"
             continue
-        hits.append(
-            SpotHit(
-                laser=spot.laser,
-                xy_px=xy[i],
-                sigma_px=spot.sigma_px,
-                hit_world=res.xyz[i],
-                normal_world=res.normal[i],
-            )
-        )
+        hits.append(SpotHit(laser=spot.laser, xy_px=xy[i], sigma_px=spot.sigma_px,
+                            hit_world=res.xyz[i], normal_world=res.normal[i]))
     return tuple(hits), reasons
 
 
-def process_image(
-    image: LaserImage,
-    loaded: LoadedInputs,
-    caster: MeshRaycaster,
-    options: ScaleOptions,
-    timer: Timer,
-) -> ImageRun:
+def _failed(image: LaserImage, reason: str, **kw: Any) -> ImageRun:
+    base: dict[str, Any] = dict(name=image.name, path=image.path, camera=image.camera,
+                                registration=None, detection=None, spots=(), hits=(),
+                                spot_reasons={}, estimates=None, reason=reason)
+    base.update(kw)
+    return ImageRun(**base)
+
+
+def process_image(image: LaserImage, loaded: LoadedInputs, caster: MeshRaycaster,
+                  options: ScaleOptions, timer: Timer) -> ImageRun:
     """Detect, register, cast and estimate for one laser image; failures become reasons."""
-
-    def failed(reason: str, **kw: Any) -> ImageRun:
-        base: dict[str, Any] = dict(
-            name=image.name,
-            path=image.path,
-            camera=image.camera,
-            registration=None,
-            detection=None,
-            spots=(),
-            hits=(),
-            spot_reasons={},
-            estimates=None,
-            reason=reason,
-        )
-        base.update(kw)
-        return ImageRun(**base)
-
+    camera = image.camera
+    if camera is None:
+        return _failed(image, "not a readable image")
     try:
         rgb = read_rgb(image.path)
     except InputError as exc:
-        return failed(f"cannot read image: {exc.problem}")
+        return _failed(image, f"cannot read image: {exc.problem}")
     with timer("detect"):
-        spots, det, spot_reasons = _spots_for(image, rgb, loaded, options)
+        spots, det, spot_reasons = _spots_for(image.name, rgb, camera, loaded, options)
     with timer("register"):
-        query = extract_sift(rgb, options.sift)
-        reg = register_image(query, image.camera, loaded.index, options.registration)
-    if not reg.success:
-        return failed(
-            reg.reason or "registration failed",
-            registration=reg,
-            detection=det,
-            spots=spots,
-            spot_reasons=spot_reasons,
-        )
+        reg = register_image(extract_sift(rgb, options.sift), camera, loaded.index,
+                             options.registration)
+    pose = reg.cam_from_world
+    done = dict(registration=reg, detection=det, spots=spots, spot_reasons=spot_reasons)
+    if not reg.success or pose is None:
+        return _failed(image, reg.reason or "registration failed", **done)
     with timer("raycast"):
-        hits, miss = _cast_spots(spots, image, reg, caster)
+        hits, miss = _cast_spots(spots, camera, pose, caster)
     spot_reasons.update(miss)
     if not hits:
         why = "no laser spot found" if not spots else "no spot ray hits the mesh"
-        return failed(why, registration=reg, detection=det, spots=spots, spot_reasons=spot_reasons)
-    obs = ImageObservation(
-        image=image.name,
-        camera=image.camera,
-        cam_from_world=reg.cam_from_world,
-        pose_covariance=reg.covariance,
-        hits=hits,
-    )
+        return _failed(image, why, **done)
+    obs = ImageObservation(image=image.name, camera=camera, cam_from_world=pose,
+                           pose_covariance=reg.covariance, hits=hits)
     with timer("estimate"):
         est = estimate_image(obs, loaded.rig, options.estimation)
     usable = [e for e in est.estimates if not e.rejected]
     reason = None if usable else "every estimate of this image was rejected"
-    return ImageRun(
-        name=image.name,
-        path=image.path,
-        camera=image.camera,
-        registration=reg,
-        detection=det,
-        spots=spots,
-        hits=hits,
-        spot_reasons=spot_reasons,
-        estimates=est,
-        reason=reason,
-    )
+    return ImageRun(name=image.name, path=image.path, camera=camera, registration=reg,
+                    detection=det, spots=spots, hits=hits, spot_reasons=spot_reasons,
+                    estimates=est, reason=reason)
 
 
 def fuse_methods(

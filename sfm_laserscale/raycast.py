@@ -45,8 +45,8 @@ class MeshRaycaster:
         self.offset = verts.mean(axis=0)
         self._scene = o3d.t.geometry.RaycastingScene()
         self._scene.add_triangles(
-            o3d.core.Tensor((verts - self.offset).astype(np.float32)),
-            o3d.core.Tensor(tris.astype(np.uint32)),
+            o3d.core.Tensor.from_numpy((verts - self.offset).astype(np.float32)),
+            o3d.core.Tensor.from_numpy(tris.astype(np.uint32)),
         )
         a, b, c = (verts[tris[:, k]] for k in range(3))
         n = np.cross(b - a, c - a)
@@ -59,7 +59,7 @@ class MeshRaycaster:
         d = np.atleast_2d(np.asarray(directions, dtype=np.float64))
         d = d / np.linalg.norm(d, axis=1, keepdims=True)
         rays = np.hstack([o - self.offset, d]).astype(np.float32)
-        ans = self._scene.cast_rays(o3d.core.Tensor(rays))
+        ans = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
         prim = ans["primitive_ids"].numpy().astype(np.int64)
         t32 = ans["t_hit"].numpy().astype(np.float64)
         hit = np.isfinite(t32) & (prim != int(self._scene.INVALID_ID))
@@ -82,7 +82,7 @@ class MeshRaycaster:
     def distances(self, xyz: NDArray[np.float64]) -> NDArray[np.float64]:
         """Unsigned distance of (N, 3) points to the mesh surface (model units)."""
         pts = np.atleast_2d(np.asarray(xyz, dtype=np.float64)) - self.offset
-        out = self._scene.compute_distance(o3d.core.Tensor(pts.astype(np.float32)))
+        out = self._scene.compute_distance(o3d.core.Tensor.from_numpy(pts.astype(np.float32)))
         return np.asarray(out.numpy(), dtype=np.float64)
 
     def median_distance(self, xyz: NDArray[np.float64]) -> float:

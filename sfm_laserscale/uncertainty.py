@@ -130,45 +130,31 @@ def rig_parameter_names(rig: Rig) -> tuple[str, ...]:
                  for s in RIG_PARAM_SUFFIXES)
 
 
-def _tilt_basis(v: F64) -> tuple[F64, F64]:
-    """Two unit vectors perpendicular to the unit beam direction v (deterministic)."""
-    a = np.array([v[2], 0.0, -v[0]]) / np.hypot(v[2], v[0])  # (0, 1, 0) × v; v·c_z > 0.01
-    b = np.array([v[1] * a[2] - v[2] * a[1], v[2] * a[0] - v[0] * a[2],
-                  v[0] * a[1] - v[1] * a[0]])  # v × a
-    return a, b
+def _tilt_basis(v: F64) -> F64:
+    """(2, 3) unit vectors perpendicular to the unit beam direction v (deterministic)."""
+    x, y, z = (float(c) for c in v)
+    n = float(np.hypot(z, x))  # v·c_z > 0.01 (rig validation), so n > 0
+    a = (z / n, 0.0, -x / n)  # (0, 1, 0) × v, normalised
+    b = (y * a[2], z * a[0] - x * a[2], -y * a[0])  # v × a
+    return np.array([a, b], dtype=np.float64)
 
 
 @dataclass(frozen=True)
-class _Beam:
-    origin: F64  # (3,) metres on z = 0
-    direction: F64  # (3,) unit
-    tilt: tuple[F64, F64]  # basis of the direction perturbation
-    rig_col: int  # first of the laser's 4 rig parameters
+class _Beams:
+    """The calibrated beams in rig order; beam j owns rig parameters 4j .. 4j+3."""
+
+    names: tuple[str, ...]
+    origin: F64  # (nb, 3) metres on z = 0
+    direction: F64  # (nb, 3) unit
+    tilt: F64  # (nb, 2, 3) basis of the direction perturbation
 
     def perturbed(self, drig: F64) -> tuple[F64, F64]:
-        """(B, 3) origins and unit directions for (B, R) rig parameter offsets."""
-        c = self.rig_col
+        """(B, nb, 3) origins and unit directions for (B, 4 nb) rig parameter offsets."""
+        d = drig.reshape(len(drig), len(self.names), 4)
         origin = np.repeat(self.origin[None], len(drig), axis=0)
-        origin[:, 0] += drig[:, c]
-        origin[:, 1] += drig[:, c + 1]
-        v = self.direction + drig[:, c + 2, None] * self.tilt[0] \
-            + drig[:, c + 3, None] * self.tilt[1]
-        return origin, v / np.linalg.norm(v, axis=1, keepdims=True)
-
-
-@dataclass(frozen=True)
-class _Fcm:
-    laser: str
-    hit: int  # index into the layout's hits
-    beam: _Beam
-
-
-@dataclass(frozen=True)
-class _Pair:
-    name: str
-    hits: tuple[int, int]
-    separation: float
-    beams: tuple[_Beam, _Beam] | None  # when both lasers are calibrated (rig sensitivity)
+        origin[..., :2] += d[..., :2]
+        v = self.direction + d[..., 2:3] * self.tilt[:, 0] + d[..., 3:4] * self.tilt[:, 1]
+        return origin, v / np.sqrt(np.sum(v * v, axis=-1, keepdims=True))
 
 
 @dataclass(frozen=True)
@@ -178,13 +164,18 @@ class _Layout:
     sigma_px: F64  # (K,)
     hit_world: F64  # (K, 3)
     normal_world: F64  # (K, 3)
-    fcm: tuple[_Fcm, ...]
-    pairs: tuple[_Pair, ...]
-    rig_sigma: F64  # (R,)
+    beams: _Beams
+    fcm_beam: NDArray[np.intp]  # (nf,) beam of each FCM estimate
+    fcm_hit: NDArray[np.intp]  # (nf,) its hit
+    pair_names: tuple[str, ...]  # "L1+L2"
+    pair_hits: NDArray[np.intp]  # (np, 2)
+    pair_beams: NDArray[np.intp]  # (np, 2), −1 for an uncalibrated laser
+    pair_sep: F64  # (np,) metres
+    rig_sigma: F64  # (4 nb,)
 
     @property
     def n_out(self) -> int:
-        return 2 * len(self.fcm) + 2 * len(self.pairs)
+        return 2 * len(self.fcm_beam) + 2 * len(self.pair_names)
 
 
 def _hit_arrays(obs: ImageObservation, rig: Rig) -> tuple[tuple[str, ...], F64, F64, F64, F64]:
@@ -208,24 +199,36 @@ def _hit_arrays(obs: ImageObservation, rig: Rig) -> tuple[tuple[str, ...], F64, 
     return names, xy, sig, hw, nw
 
 
+def _beams(rig: Rig, options: EstimationOptions) -> tuple[_Beams, F64]:
+    """The rig's calibrated beams and the σ of their 4 calibration parameters each."""
+    cal = [las for las in rig.lasers if las.origin is not None and las.direction is not None]
+    on = float(options.include_rig_uncertainty)
+    sigma = np.array([[on * x.sigma_origin] * 2 + [on * x.sigma_direction] * 2 for x in cal],
+                     dtype=np.float64).reshape(-1)
+    beams = _Beams(tuple(x.name for x in cal),
+                   np.array([x.origin for x in cal], dtype=np.float64).reshape(-1, 3),
+                   np.array([x.direction for x in cal], dtype=np.float64).reshape(-1, 3),
+                   np.array([_tilt_basis(np.asarray(x.direction)) for x in cal]).reshape(-1, 2, 3))
+    return beams, sigma
+
+
 def _layout(obs: ImageObservation, rig: Rig, options: EstimationOptions) -> _Layout:
     """Index the observation's hits against the rig: FCM lasers, PCM pairs, rig σ."""
     names, xy, sig, hw, nw = _hit_arrays(obs, rig)
-    beams: dict[str, _Beam] = {}
-    rig_sigma: list[float] = []
-    for las in rig.lasers:
-        if las.origin is None or las.direction is None:
-            continue
-        beams[las.name] = _Beam(las.origin, las.direction, _tilt_basis(las.direction),
-                                len(rig_sigma))
-        on = float(options.include_rig_uncertainty)
-        rig_sigma += [on * las.sigma_origin] * 2 + [on * las.sigma_direction] * 2
-    fcms = tuple(_Fcm(n, names.index(n), b) for n, b in beams.items() if n in names)
-    pairs = tuple(
-        _Pair(f"{a}+{b}", (names.index(a), names.index(b)), p.separation,
-              (beams[a], beams[b]) if a in beams and b in beams else None)
-        for p in rig.pairs for a, b in [p.lasers] if a in names and b in names)
-    return _Layout(names, xy, sig, hw, nw, fcms, pairs, np.array(rig_sigma, np.float64))
+    beams, rig_sigma = _beams(rig, options)
+    fcm = [(j, names.index(n)) for j, n in enumerate(beams.names) if n in names]
+    pairs = [p for p in rig.pairs if p.lasers[0] in names and p.lasers[1] in names]
+
+    def beam(n: str) -> int:
+        return beams.names.index(n) if n in beams.names else -1
+
+    return _Layout(
+        names, xy, sig, hw, nw, beams,
+        np.array([f[0] for f in fcm], dtype=np.intp), np.array([f[1] for f in fcm], np.intp),
+        tuple(f"{p.lasers[0]}+{p.lasers[1]}" for p in pairs),
+        np.array([[names.index(n) for n in p.lasers] for p in pairs], np.intp).reshape(-1, 2),
+        np.array([[beam(n) for n in p.lasers] for p in pairs], np.intp).reshape(-1, 2),
+        np.array([p.separation for p in pairs], dtype=np.float64), rig_sigma)
 
 
 def _hits_cam(lay: _Layout, camera: Camera, dpx: F64, R: F64, t: F64) -> tuple[F64, F64]:
@@ -245,43 +248,38 @@ def _hits_cam(lay: _Layout, camera: Camera, dpx: F64, R: F64, t: F64) -> tuple[F
     return rays * lam[..., None], cos_inc
 
 
-def _pair_rig_factor(pair: _Pair, x: F64, drig: F64, scale0: float) -> F64:
-    """(B,) relative change of the beams' perpendicular separation at the hits' ranges.
+def _pair_rig_factor(lay: _Layout, x: F64, origins: F64, dirs: F64, pcm0: F64) -> F64:
+    """(B, np) relative change of each pair's perpendicular beam separation at its hits.
 
     PCM and Direct 3D take the pair separation as exact; with calibrated lasers, an origin or
     direction error changes the true separation of the two hit points (non-parallel beams).
-    Ranges along the beams come from the nominal hits (row 0) at the pair's nominal scale.
+    Ranges along the beams come from the nominal hits (row 0) at the pair's nominal scale pcm0.
     """
-    if pair.beams is None or not np.any(drig):
-        return np.ones(len(drig))
-    b1, b2 = pair.beams
-    axis = b1.direction + b2.direction
-    axis /= np.linalg.norm(axis)
-
-    def separation(dr: F64) -> F64:
-        (o1, v1), (o2, v2) = b1.perturbed(dr), b2.perturbed(dr)
-        r1 = scale0 * x[0, pair.hits[0], 2] / b1.direction[2]
-        r2 = scale0 * x[0, pair.hits[1], 2] / b2.direction[2]
-        d = (o2 + r2 * v2) - (o1 + r1 * v1)
-        return np.asarray(np.linalg.norm(d - (d @ axis)[:, None] * axis, axis=1))
-
-    return separation(drig) / separation(np.zeros((1, drig.shape[1])))
+    factor = np.ones((x.shape[0], len(lay.pair_names)))
+    cal = np.flatnonzero(np.all(lay.pair_beams >= 0, axis=1))
+    if len(cal) == 0:
+        return factor
+    b1, b2 = lay.pair_beams[cal, 0], lay.pair_beams[cal, 1]
+    v1, v2 = lay.beams.direction[b1], lay.beams.direction[b2]
+    axis = (v1 + v2) / np.linalg.norm(v1 + v2, axis=1, keepdims=True)  # (m, 3)
+    r1 = pcm0[cal] * x[0, lay.pair_hits[cal, 0], 2] / v1[:, 2]
+    r2 = pcm0[cal] * x[0, lay.pair_hits[cal, 1], 2] / v2[:, 2]
+    d = (origins[:, b2] + r2[:, None] * dirs[:, b2]) - (origins[:, b1] + r1[:, None] * dirs[:, b1])
+    perp = d - np.sum(d * axis, axis=-1, keepdims=True) * axis
+    sep = np.sqrt(np.sum(perp * perp, axis=-1))  # (B, m)
+    factor[:, cal] = sep / sep[0]
+    return factor
 
 
 def _outputs(lay: _Layout, x: F64, drig: F64) -> F64:
     """(B, n_out) [FCM scales, FCM signed residuals (rad), PCM, Direct 3D]; row 0 nominal."""
-    out = np.empty((x.shape[0], lay.n_out))
-    nf, npair = len(lay.fcm), len(lay.pairs)
-    for i, f in enumerate(lay.fcm):
-        origin, v = f.beam.perturbed(drig)
-        out[:, i], out[:, nf + i] = fcm_scale_batch(x[:, f.hit], origin, v)
-    for j, p in enumerate(lay.pairs):
-        h1, h2 = x[:, p.hits[0]], x[:, p.hits[1]]
-        pcm = pcm_scale_batch(h1, h2, p.separation)
-        factor = _pair_rig_factor(p, x, drig, float(pcm[0]))
-        out[:, 2 * nf + j] = pcm * factor
-        out[:, 2 * nf + npair + j] = direct3d_scale_batch(h1, h2, p.separation) * factor
-    return out
+    origins, dirs = lay.beams.perturbed(drig)
+    s, resid = fcm_scale_batch(x[:, lay.fcm_hit], origins[:, lay.fcm_beam], dirs[:, lay.fcm_beam])
+    h1, h2 = x[:, lay.pair_hits[:, 0]], x[:, lay.pair_hits[:, 1]]
+    pcm = pcm_scale_batch(h1, h2, lay.pair_sep)
+    factor = _pair_rig_factor(lay, x, origins, dirs, pcm[0])
+    d3 = direct3d_scale_batch(h1, h2, lay.pair_sep)
+    return np.concatenate([s, resid, pcm * factor, d3 * factor], axis=1).reshape(len(x), -1)
 
 
 def _pose_sqrt(obs: ImageObservation) -> F64:
@@ -300,31 +298,25 @@ def _pose_sqrt(obs: ImageObservation) -> F64:
     return np.asarray(vecs[:, keep] * np.sqrt(vals[keep]), dtype=np.float64)
 
 
-def _directions(lay: _Layout, pose_sqrt: F64) -> tuple[F64, NDArray[np.int64]]:
-    """(P, n) input-space σ directions and, per direction, its rig parameter index (−1: random)."""
-    k, r = len(lay.names), len(lay.rig_sigma)
-    p = 2 * k + 6 + r
-    cols: list[F64] = []
-    rig_idx: list[int] = []
-    for i in range(2 * k):
-        if lay.sigma_px[i // 2] > 0:
-            cols.append(np.eye(p)[i] * lay.sigma_px[i // 2])
-            rig_idx.append(-1)
-    for m in range(pose_sqrt.shape[1]):
-        col = np.zeros(p)
-        col[2 * k:2 * k + 6] = pose_sqrt[:, m]
-        cols.append(col)
-        rig_idx.append(-1)
-    for q in range(r):
-        if lay.rig_sigma[q] > 0:
-            cols.append(np.eye(p)[2 * k + 6 + q] * lay.rig_sigma[q])
-            rig_idx.append(q)
-    d = np.array(cols).T if cols else np.zeros((p, 0))
-    return d, np.array(rig_idx, dtype=np.int64)
+def _directions(lay: _Layout, pose_sqrt: F64) -> tuple[F64, NDArray[np.intp]]:
+    """(P, n) input-space σ directions and, per direction, its rig parameter index (−1: random).
+
+    Inputs are ordered [spot pixels (2 per hit), pose (6), rig (4 per calibrated laser)];
+    directions of zero σ are dropped.
+    """
+    k, r, m = len(lay.names), len(lay.rig_sigma), pose_sqrt.shape[1]
+    px_sigma = np.repeat(lay.sigma_px, 2)
+    px = np.flatnonzero(px_sigma > 0)
+    rig = np.flatnonzero(lay.rig_sigma > 0)
+    d = np.zeros((2 * k + 6 + r, len(px) + m + len(rig)))
+    d[px, np.arange(len(px))] = px_sigma[px]
+    d[2 * k:2 * k + 6, len(px):len(px) + m] = pose_sqrt
+    d[2 * k + 6 + rig, len(px) + m + np.arange(len(rig))] = lay.rig_sigma[rig]
+    return d, np.concatenate([np.full(len(px) + m, -1), rig]).astype(np.intp)
 
 
 def _jacobian(lay: _Layout, obs: ImageObservation, options: EstimationOptions
-              ) -> tuple[F64, NDArray[np.int64], F64, F64]:
+              ) -> tuple[F64, NDArray[np.intp], F64, F64]:
     """J·D (n_out, n) by central differences along D's columns, rig index per column, and the
     nominal camera-frame hits (K, 3) with their |cos| incidence (K,)."""
     d, rig_idx = _directions(lay, _pose_sqrt(obs))
@@ -336,12 +328,12 @@ def _jacobian(lay: _Layout, obs: ImageObservation, options: EstimationOptions
     f = _outputs(lay, x, deltas[:, 2 * k + 6:])
     n = d.shape[1]
     diff = f[1:1 + n] - f[1 + n:]
-    nf = len(lay.fcm)
+    nf = len(lay.fcm_beam)
     diff[:, nf:2 * nf] = (diff[:, nf:2 * nf] + np.pi) % (2 * np.pi) - np.pi  # residual angles
     return (diff / (2 * h)).T, rig_idx, x[0], cos_inc[0]
 
 
-def _split(jd: F64, rig_idx: NDArray[np.int64], n_rig: int) -> tuple[F64, F64]:
+def _split(jd: F64, rig_idx: NDArray[np.intp], n_rig: int) -> tuple[F64, F64]:
     """Random covariance (n_out, n_out) and rig Jacobian (n_out, R) from J·D."""
     a = jd[:, rig_idx < 0]
     g = np.zeros((jd.shape[0], n_rig))
@@ -378,19 +370,20 @@ def _residual_reason(laser: str, resid_deg: float, sigma_deg: float,
 def _fcm_estimates(lay: _Layout, image: str, x0: F64, cos0: F64, cov: F64,
                    options: EstimationOptions) -> list[Estimate]:
     """FCM estimates (rows 0..nf−1 of the outputs; residual angles in rows nf..2nf−1)."""
-    nf = len(lay.fcm)
+    nf = len(lay.fcm_beam)
     out: list[Estimate] = []
-    for i, f in enumerate(lay.fcm):
-        res = fcm_scale(x0[f.hit], f.beam.origin, f.beam.direction)
+    for i, (b, k) in enumerate(zip(lay.fcm_beam, lay.fcm_hit, strict=True)):
+        laser = lay.beams.names[b]
+        res = fcm_scale(x0[k], lay.beams.origin[b], lay.beams.direction[b])
         sigma = _sigma(cov, i)
-        reason = res.reason or _grazing(lay, cos0, (f.hit,), options)
+        reason = res.reason or _grazing(lay, cos0, (k,), options)
         if reason is None and not np.isfinite(sigma):
             reason = "uncertainty could not be propagated (non-finite sigma)"
         if reason is None:
             sigma_res = float(np.degrees(_sigma(cov, nf + i)))
-            reason = _residual_reason(f.laser, res.direction_residual_deg, sigma_res, options)
-        depth = res.scale * float(np.linalg.norm(x0[f.hit]))
-        out.append(Estimate(image, "fcm", f.laser, res.scale, sigma,
+            reason = _residual_reason(laser, res.direction_residual_deg, sigma_res, options)
+        depth = res.scale * float(np.linalg.norm(x0[k]))
+        out.append(Estimate(image, "fcm", laser, res.scale, sigma,
                             res.direction_residual_deg if res.valid else None, depth,
                             reason is not None, reason))
     return out
@@ -399,23 +392,24 @@ def _fcm_estimates(lay: _Layout, image: str, x0: F64, cos0: F64, cov: F64,
 def _pair_estimates(lay: _Layout, image: str, x0: F64, cos0: F64, cov: F64,
                     options: EstimationOptions) -> list[Estimate]:
     """PCM and Direct 3D estimates of each pair with both hits."""
-    nf, npair = len(lay.fcm), len(lay.pairs)
+    nf, npair = len(lay.fcm_beam), len(lay.pair_names)
     pcm: list[Estimate] = []
     d3: list[Estimate] = []
-    for j, p in enumerate(lay.pairs):
-        h1, h2 = x0[p.hits[0]], x0[p.hits[1]]
-        res = pcm_scale(h1, h2, p.separation)
-        graze = _grazing(lay, cos0, p.hits, options)
+    for j, name in enumerate(lay.pair_names):
+        k1, k2 = (int(k) for k in lay.pair_hits[j])
+        h1, h2, sep = x0[k1], x0[k2], float(lay.pair_sep[j])
+        res = pcm_scale(h1, h2, sep)
+        graze = _grazing(lay, cos0, (k1, k2), options)
         mid = float(np.linalg.norm(0.5 * (h1 + h2)))
         for method, value, row, dest, reason in (
             ("pcm", res.scale, 2 * nf + j, pcm, res.reason or graze),
-            ("direct3d", direct3d_scale(h1, h2, p.separation), 2 * nf + npair + j, d3,
+            ("direct3d", direct3d_scale(h1, h2, sep), 2 * nf + npair + j, d3,
              res.reason or graze),
         ):
             sigma = _sigma(cov, row)
             if reason is None and not (np.isfinite(value) and np.isfinite(sigma)):
                 reason = "non-finite estimate or sigma"
-            dest.append(Estimate(image, method, p.name, float(value), sigma, None,
+            dest.append(Estimate(image, method, name, float(value), sigma, None,
                                  float(value) * mid, reason is not None, reason))
     return pcm + d3
 
@@ -423,13 +417,12 @@ def _pair_estimates(lay: _Layout, image: str, x0: F64, cos0: F64, cov: F64,
 def _per_method(lay: _Layout, matrix: F64, estimates: list[Estimate], square: bool
                 ) -> dict[str, F64]:
     """Split an (n_out, ·) output matrix into per-method blocks; invalid rows become NaN."""
-    nf, npair = len(lay.fcm), len(lay.pairs)
-    rows = {"fcm": np.arange(nf), "pcm": 2 * nf + np.arange(npair),
-            "direct3d": 2 * nf + npair + np.arange(npair)}
+    nf, npair = len(lay.fcm_beam), len(lay.pair_names)
+    rows = {"fcm": slice(0, nf), "pcm": slice(2 * nf, 2 * nf + npair),
+            "direct3d": slice(2 * nf + npair, 2 * nf + 2 * npair)}
     blocks: dict[str, F64] = {}
     for method, idx in rows.items():
-        block = matrix[np.ix_(idx, idx)] if square else matrix[idx]
-        block = np.array(block, dtype=np.float64)
+        block = np.array(matrix[idx, idx] if square else matrix[idx], dtype=np.float64)
         bad = [i for i, e in enumerate(e for e in estimates if e.method == method)
                if not np.isfinite(e.scale)]
         block[bad] = np.nan

@@ -277,6 +277,19 @@ def test_acceptance_rule_rejects_with_plain_reasons() -> None:
         estimate_pose(xy[:10], xyz[:9], cam, PoseOptions())
 
 
+def test_nonsense_options_are_input_errors() -> None:
+    with pytest.raises(InputError):
+        MatchOptions(ratio=1.5)
+    with pytest.raises(InputError):
+        PoseOptions(min_inliers=2)
+    with pytest.raises(InputError):
+        TieOptions(tie_radius_px=0)
+    with pytest.raises(InputError):
+        SiftOptions(normalization="L3")
+    opts = RegistrationOptions().with_seed(42)
+    assert opts.pose.seed == 42 and opts.index.seed == 42
+
+
 def test_pure_outliers_fail_with_a_reason() -> None:
     rng = np.random.default_rng(7)
     cam = _camera()

@@ -12,6 +12,16 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from uncertainty_synth import (
+    K_TRUE,
+    make_rig,
+    make_scene,
+    observe,
+    pose_covariance,
+    rodrigues,
+    sample_hits_cam,
+    true_hits_cam_m,
+)
 
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.fusion import FusionOptions, combine_image
@@ -25,16 +35,6 @@ from sfm_laserscale.uncertainty import (
     estimate_image,
     perturb_pose,
     rig_parameter_names,
-)
-from uncertainty_synth import (
-    K_TRUE,
-    make_rig,
-    make_scene,
-    observe,
-    pose_covariance,
-    rodrigues,
-    sample_hits_cam,
-    true_hits_cam_m,
 )
 
 OPTS = EstimationOptions()
@@ -200,35 +200,33 @@ def test_mc_pcm_sigma_is_calibrated(mc_setup):
         assert 0.9 <= ratio <= 1.15, (e.laser, ratio)
 
 
-def perturbed_rig(rig, rng, sigma_o, sigma_d):
-    """A 'true' rig drawn from the nominal one's calibration uncertainty (isotropic tilts)."""
-    lasers = []
-    for las in rig.lasers:
-        v = las.direction
-        tilt = (np.eye(3) - np.outer(v, v)) @ rng.normal(scale=sigma_d, size=3)
-        new_v = (v + tilt) / np.linalg.norm(v + tilt)
-        origin = las.origin + np.r_[rng.normal(scale=sigma_o, size=2), 0.0]
-        lasers.append(replace(las, origin=origin, direction=new_v))
-    return replace(rig, lasers=tuple(lasers))
-
-
 def test_mc_rig_calibration_term_is_calibrated():
+    """True rigs drawn from the nominal rig's calibration σ (isotropic beam tilts); exact hits of
+    the true beams, estimates with the nominal rig: the spread is the propagated rig term."""
     rng = np.random.default_rng(11)
-    so, sd = 0.001, 0.001
+    so, sd, n = 0.001, 0.001, 4000
     rig = make_rig(so, sd)
-    ie = estimate_image(observe(make_scene(rig), rng, 0.0, None, sigma_claimed=0.0), rig, OPTS)
+    scene = make_scene(rig)
+    ie = estimate_image(observe(scene, rng, 0.0, None, sigma_claimed=0.0), rig, OPTS)
     assert ie.rig_params == rig_parameter_names(rig) and len(ie.rig_params) == 16
     for m in ("fcm", "pcm"):  # no spot / pose noise: the whole σ is the rig term
         np.testing.assert_allclose(ie.covariance_random[m], 0.0, atol=1e-30)
-    draws = []
-    for _ in range(800):
-        scene = make_scene(perturbed_rig(rig, rng, so, sd))
-        e = estimate_image(observe(scene, rng, 0.0, None), rig, EstimationOptions(
-            include_rig_uncertainty=False, max_direction_residual_deg=90.0))
-        draws.append([x.scale for x in e.estimates])
-    mc = np.array(draws).std(axis=0, ddof=1)
-    for i, e in enumerate(ie.estimates[:6]):  # FCM ×4, PCM ×2
-        ratio = mc[i] / e.sigma
+    n_c = scene.pose.R @ scene.plane_normal
+    p_c = (scene.pose.R @ scene.plane_point + scene.pose.t) * scene.k
+    hits, nominal = [], []
+    for las in rig.lasers:
+        v = las.direction
+        tilt = rng.normal(scale=sd, size=(n, 3)) @ (np.eye(3) - np.outer(v, v))
+        true_v = (v + tilt) / np.linalg.norm(v + tilt, axis=1, keepdims=True)
+        true_o = las.origin + np.column_stack([rng.normal(scale=so, size=(n, 2)), np.zeros(n)])
+        r = ((p_c - true_o) @ n_c) / (true_v @ n_c)
+        hits.append((true_o + r[:, None] * true_v) / scene.k)
+        nominal.append((np.broadcast_to(las.origin, (n, 3)), np.broadcast_to(v, (n, 3))))
+    mc = [fcm_scale_batch(hits[i], *nominal[i])[0] for i in range(4)]
+    mc += [pcm_scale_batch(hits[0], hits[1], rig.pairs[0].separation),
+           pcm_scale_batch(hits[2], hits[3], rig.pairs[1].separation)]
+    for e, draws in zip(ie.estimates[:6], mc, strict=True):  # FCM ×4, PCM ×2
+        ratio = draws.std(ddof=1) / e.sigma
         assert 0.9 <= ratio <= 1.15, (e.method, e.laser, ratio)
 
 

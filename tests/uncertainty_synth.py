@@ -9,7 +9,7 @@ R' = exp([δ]ₓ) R, t' = t + δt, implemented here independently of the package
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -105,7 +105,8 @@ def true_hits_cam_m(scene: Scene) -> dict[str, F64]:
 def true_pixels(scene: Scene) -> dict[str, F64]:
     """Exact spot pixels of every beam."""
     hits = true_hits_cam_m(scene)
-    return {n: scene.camera.project(x[None])[0] for n, x in hits.items()}
+    px = scene.camera.project(np.array(list(hits.values())))
+    return dict(zip(hits, px, strict=True))
 
 
 def intersect(scene: Scene, pose: Pose, xy: F64) -> F64:
@@ -138,7 +139,7 @@ def observe(scene: Scene, rng: np.random.Generator, sigma_px: float, pose_cov: F
     """
     pose = scene.pose
     if pose_cov is not None and pose_noise:
-        d = rng.multivariate_normal(np.zeros(6), pose_cov)
+        d = np.linalg.cholesky(pose_cov) @ rng.normal(size=6)
         pose = Pose(rodrigues(d[:3]) @ pose.R, pose.t + d[3:])
     px = true_pixels(scene)
     xy = np.array([px[n] for n in lasers]) + rng.normal(scale=sigma_px, size=(len(lasers), 2))
@@ -185,3 +186,18 @@ def sample_hits_cam(scene: Scene, rng: np.random.Generator, n: int, sigma_px: fl
     p_c = R @ scene.plane_point + t
     lam = np.sum(n_c * p_c, axis=1)[:, None] / np.einsum("nj,nlj->nl", n_c, rays)
     return np.asarray(rays * lam[..., None], dtype=np.float64)
+
+
+def perturbed_rig(rig: Rig, rng: np.random.Generator, sigma_origin: float,
+                  sigma_direction: float) -> Rig:
+    """A 'true' rig drawn from the nominal one's calibration σ (origin x/y, isotropic tilt)."""
+    lasers = []
+    for las in rig.lasers:
+        if las.origin is None or las.direction is None:
+            lasers.append(las)
+            continue
+        v = las.direction
+        tilt = (np.eye(3) - np.outer(v, v)) @ rng.normal(scale=sigma_direction, size=3)
+        origin = las.origin + np.r_[rng.normal(scale=sigma_origin, size=2), 0.0]
+        lasers.append(replace(las, origin=origin, direction=(v + tilt) / np.linalg.norm(v + tilt)))
+    return replace(rig, lasers=tuple(lasers))

@@ -52,11 +52,12 @@ from sfm_laserscale.model import (
 logger = logging.getLogger(__name__)
 
 MODEL_STEMS = ("cameras", "images", "points3D")
-RIG_STEMS = ("rigs", "frames")  # COLMAP >= 3.12 / 4.x
 _FORMATS = {".bin": "colmap-binary", ".txt": "colmap-text"}
 
 _U64 = struct.Struct("<Q")
 _U32 = struct.Struct("<I")
+_U8 = struct.Struct("<B")
+_RIG_HEAD = struct.Struct("<II")  # rig_id, number of sensors
 _CAMERA_HEAD = struct.Struct("<IiQQ")  # camera_id, model_id, width, height
 _IMAGE_HEAD = struct.Struct("<I7dI")  # image_id, qw qx qy qz tx ty tz, camera_id
 _IMAGE_TVEC_AT = 4 + 4 * 8  # byte offset of tx inside an images.bin record
@@ -70,10 +71,11 @@ _POINT_HEAD_DTYPE = np.dtype(
 )  # packed: 51 bytes
 _CHUNK_ROWS = 1 << 16  # rows per gather/scatter block (bounds the index matrices' memory)
 _TOKEN = re.compile(rb"\S+")
+_MAX_POINT_ID = 2**64 - 1  # exclusive: 2^64 - 1 is INVALID_POINT3D_ID
 
 I64 = NDArray[np.int64]
-T = TypeVar("T")
 F64 = NDArray[np.float64]
+T = TypeVar("T")
 
 
 # --------------------------------------------------------------------------- camera models
@@ -328,12 +330,12 @@ def _parse_rigs_bin(data: bytes, path: Path) -> list[int]:
     t_offsets = []
     for i in range(n):
         what = f"rig {i + 1} of {n}"
-        _, n_sensors = cur.unpack(struct.Struct("<II"), what)
+        _, n_sensors = cur.unpack(_RIG_HEAD, what)
         if n_sensors > 0:
             cur.take(8, f"the reference sensor of {what}")
         for j in range(max(n_sensors - 1, 0)):
             cur.take(8, f"sensor {j + 2} of {what}")
-            (has_pose,) = cur.unpack(struct.Struct("<B"), f"sensor {j + 2} of {what}")
+            (has_pose,) = cur.unpack(_U8, f"sensor {j + 2} of {what}")
             if has_pose:
                 t_offsets.append(cur.take(56, f"the pose of sensor {j + 2} of {what}") + 32)
     cur.finish()
@@ -406,6 +408,8 @@ def _parse_camera_line(line: bytes, path: Path, lineno: int) -> Camera:
     except (IndexError, ValueError, UnicodeDecodeError):
         raise _line_error(path, lineno, "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]",
                           line) from None
+    if not (0 <= cam_id < 2**32 and width > 0 and height > 0):
+        raise _line_error(path, lineno, "CAMERA_ID, WIDTH or HEIGHT out of range", line)
     n_params = camera_model_num_params(model)
     if n_params is None:
         raise _line_error(path, lineno, f"unknown camera model {model!r}", line)
@@ -434,6 +438,8 @@ def _parse_pose_line(line: bytes, path: Path, lineno: int) -> tuple[int, Pose, i
     except (IndexError, ValueError):
         raise _line_error(path, lineno, "expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME",
                           line) from None
+    if not (0 <= image_id < 2**32 and 0 <= camera_id < 2**32):
+        raise _line_error(path, lineno, "IMAGE_ID or CAMERA_ID out of range", line)
     return image_id, _pose(q, t, path, f"line {lineno}"), camera_id, name
 
 
@@ -478,20 +484,17 @@ def _add_text_image(images: dict[int, Image], head: tuple[int, Pose, int, str, i
 
 def _parse_point_line(line: bytes, path: Path, lineno: int) -> tuple[int, float, float, float]:
     tok = line.split()
-    if len(tok) < 8 or len(tok) % 2:
+    ok = len(tok) >= 8 and len(tok) % 2 == 0 and b"".join(tok[4:7] + tok[8:]).isdigit()
+    try:  # R G B and the track are unsigned integers (checked above), ERROR any number
+        pid, x, y, z = int(tok[0]), float(tok[1]), float(tok[2]), float(tok[3])
+        float(tok[7])
+    except (IndexError, ValueError):
+        ok = False
+    if not ok:
         raise _line_error(path, lineno, "expected POINT3D_ID X Y Z R G B ERROR TRACK[] "
                           "(IMAGE_ID POINT2D_IDX pairs)", line)
-    try:
-        pid, x, y, z = int(tok[0]), float(tok[1]), float(tok[2]), float(tok[3])
-        ok = all(0 <= int(c) <= 255 for c in tok[4:7]) and math.isfinite(float(tok[7]))
-    except ValueError:
-        ok = False
-    track_ok = len(tok) == 8 or b"".join(tok[8:]).isdigit()  # unsigned integers only
-    if not (ok and track_ok):
-        raise _line_error(path, lineno, "cannot parse POINT3D_ID X Y Z R G B ERROR TRACK[]",
-                          line)
-    if pid < 0:
-        raise _line_error(path, lineno, "negative POINT3D_ID", line)
+    if not 0 <= pid < _MAX_POINT_ID:
+        raise _line_error(path, lineno, "POINT3D_ID out of range", line)
     return pid, x, y, z
 
 
@@ -545,8 +548,8 @@ def _check_model(model: SparseModel, folder: Path, suffix: str) -> None:
                 f"image {im.image_id} ({im.name}) refers to camera {im.camera_id}, "
                 f"which is not in cameras{suffix}", images_file)
         obs = im.point3D_ids[im.point3D_ids != INVALID_POINT3D_ID]
-        pos = np.searchsorted(known, obs)
-        bad = (pos >= len(known)) | (known[np.minimum(pos, len(known) - 1)] != obs)
+        pos = np.minimum(np.searchsorted(known, obs), max(len(known) - 1, 0))
+        bad = known[pos] != obs if len(known) else np.ones(len(obs), dtype=bool)
         if np.any(bad):
             raise InputError(
                 f"image {im.image_id} ({im.name}) observes 3D point {int(obs[bad][0])}, "

@@ -30,6 +30,7 @@ import os
 import re
 import shutil
 import struct
+import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -376,7 +377,12 @@ class _BinaryElement:
     def groups(self) -> Iterator[tuple[NDArray[np.int64], np.dtype[Any]]]:
         """(row indices, row dtype) for each distinct row layout (variable layout only)."""
         assert self.list_counts is not None  # internal invariant, not an input check
-        layouts, inverse = np.unique(self.list_counts, axis=0, return_inverse=True)
+        counts = self.list_counts
+        if counts.shape[1] == 1:  # 1-D unique is much faster than unique(axis=0)
+            layouts, inverse = np.unique(counts[:, 0], return_inverse=True)
+            layouts = layouts[:, None]
+        else:
+            layouts, inverse = np.unique(counts, axis=0, return_inverse=True)
         inverse = inverse.reshape(-1)
         for i, layout in enumerate(layouts):
             yield np.flatnonzero(inverse == i), _row_dtype(self.elem, layout.tolist(), self.bo)
@@ -435,31 +441,56 @@ def _scan_variable_rows(buf: NDArray[np.uint8], pos: int, elem: _PlyElement, bo:
         if p.count_code is None:
             fixed += np.dtype(p.code).itemsize
         else:
-            fmt = (bo or "<") + np.dtype(p.count_code).char
+            fmt = bo + np.dtype(p.count_code).char
             plan.append((fixed, struct.Struct(fmt), np.dtype(p.code).itemsize))
             fixed = 0
-    tail, n_bytes, start = fixed, len(buf), pos
-    mem = _bytes_view(buf)
+    start, mem = pos, _bytes_view(buf)
+    try:
+        if len(plan) == 1 and plan[0][1].size == 1 and plan[0][1].format[-1] == "B":
+            offsets, counts, pos = _offsets_one_uchar_list(mem, pos, elem.count, plan[0], fixed)
+        else:
+            offsets, counts, pos = _offsets_generic(mem, pos, elem.count, plan, fixed)
+    except (IndexError, struct.error):
+        raise _truncated(path, elem) from None
+    if pos > len(buf):
+        raise _truncated(path, elem)
+    if (counts < 0).any():
+        raise InputError(f"negative list length in PLY element {elem.name!r}", path)
+    return _BinaryElement(elem, start, pos, bo, None, offsets, counts)
+
+
+def _offsets_one_uchar_list(mem: memoryview, pos: int, count: int,
+                            segment: tuple[int, struct.Struct, int],
+                            tail: int) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:
+    """Row offsets when the only list has a uchar length (the usual face element): fast loop."""
+    skip, _, item = segment
+    row_size = [skip + 1 + item * c + tail for c in range(256)]
+    offsets: list[int] = []
+    add = offsets.append
+    for _ in range(count):
+        add(pos)
+        pos += row_size[mem[pos + skip]]
+    offsets_array = np.asarray(offsets, dtype=np.int64)
+    counts = np.frombuffer(mem, dtype=np.uint8)[offsets_array + skip]
+    return offsets_array, counts.astype(np.int64).reshape(-1, 1), pos
+
+
+def _offsets_generic(mem: memoryview, pos: int, count: int,
+                     plan: list[tuple[int, struct.Struct, int]],
+                     tail: int) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:
+    """Row offsets for any combination of list properties (slower loop)."""
     offsets: list[int] = []
     counts: list[int] = []
-    for _ in range(elem.count):
+    for _ in range(count):
         offsets.append(pos)
         for skip, st, item in plan:
             pos += skip
-            if pos + st.size > n_bytes:
-                raise _truncated(path, elem)
             c = st.unpack_from(mem, pos)[0]
-            if c < 0:
-                raise InputError(f"negative list length in PLY element {elem.name!r}", path)
             counts.append(c)
-            pos += st.size + c * item
+            pos += st.size + max(c, 0) * item
         pos += tail
-    if pos > n_bytes:
-        raise _truncated(path, elem)
-    return _BinaryElement(
-        elem, start, pos, bo, None, np.asarray(offsets, dtype=np.int64),
-        np.asarray(counts, dtype=np.int64).reshape(elem.count, len(plan)),
-    )
+    counts_array = np.asarray(counts, dtype=np.int64).reshape(count, len(plan))
+    return np.asarray(offsets, dtype=np.int64), counts_array, pos
 
 
 def _gather(buf: NDArray[np.uint8], starts: NDArray[np.int64], nbytes: int,
@@ -694,7 +725,60 @@ def _is_int(token: str) -> bool:
     return True
 
 
+# a literal first character lets the regex engine skip ahead quickly (files get "\n" prepended)
+_OBJ_V_REST = re.compile(rb"\nv[ \t]+([^\r\n]*)")
+_OBJ_F_REST = re.compile(rb"\nf[ \t]+([^\r\n]*)")
+_OBJ_INDENTED = re.compile(rb"\n[ \t]+[vf][ \t]")
+
+
+def _parse_numbers(text: bytes, dtype: type) -> NDArray[Any] | None:
+    """Whitespace-separated numbers parsed in C; None when some token is not a number."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)  # numpy warns on unparsed data
+        try:
+            return np.fromstring(text, dtype=dtype, sep=" ")
+        except (ValueError, DeprecationWarning):
+            return None
+
+
+def _tokens_per_line(text: bytes) -> NDArray[np.int64]:
+    """Number of whitespace-separated tokens on each '\\n'-separated line of ``text``."""
+    b = np.frombuffer(text, dtype=np.uint8)
+    newline = b == 10
+    space = (b == 32) | (b == 9) | (b == 13) | newline
+    first = ~space & np.concatenate([[True], space[:-1]])
+    line = np.cumsum(newline, dtype=np.int32)
+    return np.bincount(line[first], minlength=int(newline.sum()) + 1).astype(np.int64)
+
+
+def _load_obj_fast(data: bytes) -> tuple[NDArray[Any], NDArray[Any]] | None:
+    """Vectorised OBJ reading for well-formed files; None -> use the line-by-line reader."""
+    data = b"\n" + data
+    if _OBJ_INDENTED.search(data):
+        return None
+    v_rest, f_rest = _OBJ_V_REST.findall(data), _OBJ_F_REST.findall(data)
+    if not v_rest or not f_rest:
+        return None
+    xyz = _parse_numbers(b"\n".join(v_rest), np.float64)
+    if xyz is None or len(xyz) != 3 * len(v_rest):  # w, colours or bad tokens: slow path
+        return None
+    text = re.sub(rb"/\S*", b"", b"\n".join(f_rest))
+    idx = _parse_numbers(text, np.int64)
+    sizes = _tokens_per_line(text)
+    if idx is None or len(idx) != sizes.sum() or (idx <= 0).any():  # negatives: slow path
+        return None
+    starts = np.cumsum(sizes) - sizes
+    groups = []
+    for n in np.unique(sizes):
+        rows = np.flatnonzero(sizes == n)
+        groups.append((rows, idx[starts[rows, None] + np.arange(n)] - 1))
+    return xyz.reshape(-1, 3), _fan_triangulate(groups, len(sizes), Path("obj"))
+
+
 def _load_obj(path: Path) -> tuple[NDArray[Any], NDArray[Any]]:
+    fast = _load_obj_fast(path.read_bytes())
+    if fast is not None:
+        return fast
     v_lines, f_lines = _obj_lines(path)
     if not v_lines and not f_lines:
         raise InputError("no 'v' or 'f' lines: not an OBJ mesh", path)
@@ -991,17 +1075,47 @@ _STL_VERTEX = _xyz_pattern(rb"vertex[ \t]+")
 _OFF_VERTEX = _xyz_pattern(b"")
 
 
+# patterns start with a literal "\n" (blocks get one prepended): much faster than "^" + re.M
+_OBJ_V_LINE = re.compile(rb"(\n[ \t]*v[ \t]+)(\S+)([ \t]+)(\S+)([ \t]+)(\S+)")
+_OBJ_V_ANY = re.compile(rb"\n[ \t]*v[ \t]")
+_OBJ_MTLLIB = re.compile(rb"\n[ \t]*mtllib[ \t]+([^\r\n]*)")
+
+
+def _line_blocks(f: BinaryIO) -> Iterator[bytes]:
+    """The file in blocks of whole lines (about _COPY_CHUNK bytes each)."""
+    carry = b""
+    while block := f.read(_COPY_CHUNK):
+        block = carry + block
+        cut = block.rfind(b"\n") + 1
+        carry, block = block[cut:], block[:cut]
+        if block:
+            yield block
+    if carry:
+        yield carry
+
+
 def _write_scaled_obj(src: Path, dst: Path, scale: float) -> list[Path]:
     """Rewrite only the x y z of 'v' lines; copy the MTL files and their textures."""
     mtllibs: list[str] = []
+
+    def scaled(m: re.Match[bytes]) -> bytes:
+        x, y, z = (float(m[k]) * scale for k in (2, 4, 6))  # ValueError on a bad token
+        return b"%s%r%s%r%s%r" % (m[1], x, m[3], y, m[5], z)  # %r: shortest exact repr
+
+    first_line = 1
     with open(src, "rb") as fi, _AtomicOutput(dst) as fo:
-        for lineno, line in enumerate(fi, 1):
-            stripped = line.lstrip(b" \t")
-            if stripped[:2] in (b"v ", b"v\t"):
-                line = _scale_xyz_line(line, _OBJ_V, scale, lineno, src)
-            elif stripped[:7] in (b"mtllib ", b"mtllib\t"):
-                mtllibs.append(stripped[7:].decode("utf-8", "surrogateescape").strip())
-            fo.write(line)
+        for block in _line_blocks(fi):
+            block = b"\n" + block
+            try:
+                out, n_scaled = _OBJ_V_LINE.subn(scaled, block)
+            except ValueError:
+                n_scaled = -1
+            if n_scaled != len(_OBJ_V_ANY.findall(block)):
+                _raise_bad_xyz_line(block[1:], _OBJ_V, first_line, src)
+            fo.write(out[1:])
+            mtllibs += [m.decode("utf-8", "surrogateescape").strip()
+                        for m in _OBJ_MTLLIB.findall(block)]
+            first_line += block.count(b"\n") - 1
     written = [dst]
     for entry in mtllibs:
         for name in _mtllib_names(entry, src.parent):
@@ -1010,6 +1124,15 @@ def _write_scaled_obj(src: Path, dst: Path, scale: float) -> list[Path]:
                 rel = (Path(name).parent / tex).as_posix() if not Path(tex).is_absolute() else tex
                 _copy_side_file(rel, src.parent, dst.parent, written)
     return written
+
+
+def _raise_bad_xyz_line(block: bytes, pattern: re.Pattern[bytes], first_line: int,
+                        path: Path) -> None:
+    """Raise the InputError (with its line number) for the first bad vertex line of a block."""
+    for i, line in enumerate(block.split(b"\n")):
+        if line.lstrip(b" \t")[:2] in (b"v ", b"v\t"):
+            _scale_xyz_line(line, pattern, 1.0, first_line + i, path)
+    raise InputError(f"bad vertex line near line {first_line}", path)
 
 
 def _scale_xyz_line(line: bytes, pattern: re.Pattern[bytes], scale: float, lineno: int,

@@ -5,6 +5,8 @@
     images/ref_000.png …        reference images (rendered, no laser spots) — the SfM input
     laser_images/laser_000.png  held-out images with laser spots (rendered + painted + noise)
     database.db                 COLMAP database of the reference images (SIFT, matches)
+    pairs.txt                   the image pairs matched: views that overlap (navigation-based
+                                pairing, as a survey would use its vehicle's navigation)
     sparse/0/                   pycolmap incremental reconstruction (binary), arbitrary frame/scale
     mesh.ply                    the metric scene mesh mapped INTO THE MODEL FRAME (float64 x y z,
                                 uchar colours, faces) — stands in for an MVS mesh
@@ -68,8 +70,8 @@ F64 = NDArray[np.float64]
 #: Laser origins: corners of a square of side 2 × 0.117 m (‖O‖ = 0.1655 m), camera frame.
 _CORNER = 0.117
 #: Files and folders that make_demo_dataset writes (removed first when overwriting).
-OUTPUTS = ("images", "laser_images", "database.db", "sparse", "mesh.ply", "rig.toml",
-           "truth.json", "true_spots.csv")
+OUTPUTS = ("images", "laser_images", "database.db", "pairs.txt", "sparse", "mesh.ply",
+           "rig.toml", "truth.json", "true_spots.csv")
 
 
 class SfmFailedError(RuntimeError):
@@ -100,7 +102,9 @@ class DemoDataOptions:
     spot_peak: float = 3.0  # linear peak of the spot core (> 1 saturates)
     noise_std: float = 0.004  # Gaussian sensor noise, linear units
     gamma: float = 2.2  # encoding of the 8-bit PNGs
-    max_features: int = 6000  # SIFT features per image for SfM
+    max_features: int = 4000  # SIFT features per image for SfM
+    sift_first_octave: int = 0  # 0: no upsampling (≈5× faster than COLMAP's −1 here)
+    min_pair_overlap: float = 0.15  # match only image pairs whose views overlap this much
     scene: SceneOptions = field(default_factory=SceneOptions)
     render: RenderOptions = field(default_factory=RenderOptions)
     seed: int = 0
@@ -184,7 +188,7 @@ def resolve_options(options: DemoDataOptions) -> DemoDataOptions:
         return options
     scene = replace(options.scene, size_m=(7.0, 7.0), texture_px=2048)
     return replace(options, image_size=(640, 480), focal_px=900.0 * 640 / 1024, n_reference=8,
-                   n_laser=3, max_features=4000, scene=scene)
+                   n_laser=3, max_features=2000, scene=scene)
 
 
 def demo_camera(options: DemoDataOptions) -> Camera:
@@ -289,6 +293,45 @@ def laser_poses(options: DemoDataOptions, raycaster: SceneRaycaster, reference: 
     return poses
 
 
+def overlapping_pairs(raycaster: SceneRaycaster, camera: Camera, poses: list[Pose],
+                      min_overlap: float, grid: int = 12) -> list[tuple[int, int]]:
+    """Index pairs (i < j) whose views share at least ``min_overlap`` of a sampled footprint.
+
+    Each view's footprint is a ``grid`` × ``grid`` set of scene points (ray casts); the overlap
+    of a pair is the larger fraction of one view's points that project inside the other view.
+    """
+    u = (np.arange(grid) + 0.5) / grid
+    gx, gy = np.meshgrid(u * camera.width, u * camera.height)
+    rays_cam = camera.unproject(np.column_stack([gx.ravel(), gy.ravel()]))
+    footprints = []
+    for pose in poses:
+        pts, ok = raycaster.first_hit(np.broadcast_to(pose.center, rays_cam.shape),
+                                      rays_cam @ pose.R)
+        footprints.append(pts[ok])
+    pairs = []
+    for i in range(len(poses)):
+        for j in range(i + 1, len(poses)):
+            frac = max(_inside_fraction(camera, poses[j], footprints[i]),
+                       _inside_fraction(camera, poses[i], footprints[j]))
+            if frac >= min_overlap:
+                pairs.append((i, j))
+    return pairs
+
+
+def _inside_fraction(camera: Camera, pose: Pose, xyz_world: F64) -> float:
+    """Fraction of the points in front of the camera that project inside the image."""
+    if len(xyz_world) == 0:
+        return 0.0
+    x_c = pose.transform(xyz_world)
+    front = x_c[:, 2] > 1e-6
+    if not front.any():
+        return 0.0
+    xy = camera.project(x_c[front])
+    inside = ((xy[:, 0] >= 0) & (xy[:, 0] <= camera.width)
+              & (xy[:, 1] >= 0) & (xy[:, 1] <= camera.height))
+    return float(inside.sum()) / len(xyz_world)
+
+
 # --------------------------------------------------------------------------- laser spots
 
 
@@ -382,9 +425,13 @@ def _colmap_log_level(verbose: bool) -> Iterator[None]:
 
 
 def run_sfm(images_dir: Path, image_names: list[str], database_path: Path, sparse_dir: Path,
-            camera: Camera, options: DemoDataOptions) -> tuple[pycolmap.Reconstruction,
-                                                               SfmStats, dict[str, float]]:
-    """SIFT + exhaustive matching + incremental mapping (pycolmap, CPU, known PINHOLE camera)."""
+            camera: Camera, pairs_path: Path | None,
+            options: DemoDataOptions) -> tuple[pycolmap.Reconstruction, SfmStats,
+                                               dict[str, float]]:
+    """SIFT + matching + incremental mapping (pycolmap, CPU, known PINHOLE camera held fixed).
+
+    ``pairs_path``: a COLMAP pair list ("name1 name2" lines) to match; None = exhaustive.
+    """
     timings: dict[str, float] = {}
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
@@ -392,6 +439,7 @@ def run_sfm(images_dir: Path, image_names: list[str], database_path: Path, spars
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.use_gpu = False
     extraction.sift.max_num_features = options.max_features
+    extraction.sift.first_octave = options.sift_first_octave
     matching = pycolmap.FeatureMatchingOptions()
     matching.use_gpu = False
     mapping = _mapping_options(options.seed)
@@ -404,8 +452,14 @@ def run_sfm(images_dir: Path, image_names: list[str], database_path: Path, spars
         timings["sfm_features"] = time.perf_counter() - t0
         steps.update()
         t0 = time.perf_counter()
-        pycolmap.match_exhaustive(database_path, matching_options=matching,
-                                  device=pycolmap.Device.cpu)
+        if pairs_path is None:
+            pycolmap.match_exhaustive(database_path, matching_options=matching,
+                                      device=pycolmap.Device.cpu)
+        else:
+            pycolmap.match_image_pairs(
+                database_path, matching_options=matching,
+                pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pairs_path),
+                device=pycolmap.Device.cpu)
         timings["sfm_matching"] = time.perf_counter() - t0
         steps.update()
         t0 = time.perf_counter()
@@ -583,7 +637,7 @@ def _render_all(raycaster: SceneRaycaster, camera: Camera, ref: _Views, las: _Vi
 
 
 def _truth(options: DemoDataOptions, camera: Camera, ref: _Views, las: _Views,
-           align: Alignment, stats: SfmStats) -> dict[str, Any]:
+           align: Alignment, stats: SfmStats, n_pairs: int) -> dict[str, Any]:
     """The content of truth.json."""
     return {
         "true_scale": 1.0 / align.scale,
@@ -596,7 +650,7 @@ def _truth(options: DemoDataOptions, camera: Camera, ref: _Views, las: _Views,
                    "params": [float(v) for v in camera.params]},
         "rig": options.rig, "seed": options.seed,
         "sfm": {"n_images": stats.n_images, "n_registered": stats.n_registered,
-                "n_points": stats.n_points, "n_models": stats.n_models,
+                "n_points": stats.n_points, "n_models": stats.n_models, "n_pairs": n_pairs,
                 "mean_reprojection_error_px": stats.mean_reprojection_error_px,
                 "mean_track_length": stats.mean_track_length},
         "reference_images": [{"name": n, "cam_from_world": _pose_json(p)}
@@ -641,8 +695,13 @@ def make_demo_dataset(out_dir: Path, options: DemoDataOptions = DemoDataOptions(
     t0 = time.perf_counter()
     _render_all(raycaster, camera, ref, las, rig, options, out_dir)
     timings["render"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    pairs = overlapping_pairs(raycaster, camera, ref.poses, options.min_pair_overlap)
+    (out_dir / "pairs.txt").write_text(
+        "".join(f"{ref.names[i]} {ref.names[j]}\n" for i, j in pairs), encoding="utf-8")
+    timings["pairs"] = time.perf_counter() - t0
     rec, stats, sfm_t = run_sfm(out_dir / "images", ref.names, out_dir / "database.db",
-                                out_dir / "sparse" / "0", camera, options)
+                                out_dir / "sparse" / "0", camera, out_dir / "pairs.txt", options)
     timings.update(sfm_t)
     t0 = time.perf_counter()
     align = align_model({n: p.center for n, p in zip(ref.names, ref.poses, strict=True)},
@@ -650,7 +709,7 @@ def make_demo_dataset(out_dir: Path, options: DemoDataOptions = DemoDataOptions(
     write_mesh_ply(out_dir / "mesh.ply", align.apply(scene.vertices), scene.triangles,
                    vertex_colors(scene, options.gamma))
     (out_dir / "rig.toml").write_text(rig_to_toml(rig), encoding="utf-8")
-    truth = _truth(options, camera, ref, las, align, stats)
+    truth = _truth(options, camera, ref, las, align, stats, len(pairs))
     (out_dir / "truth.json").write_text(json.dumps(truth, indent=2), encoding="utf-8")
     _write_spots_csv(out_dir / "true_spots.csv", las)
     timings["write"] = time.perf_counter() - t0

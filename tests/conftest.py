@@ -1,0 +1,27 @@
+"""Shared fixtures: the real fixtures folder and one small synthetic data set per session."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+FIXTURES = REPO.parent / "shared" / "fixtures"
+
+
+@pytest.fixture(scope="session")
+def fixtures_dir() -> Path:
+    """../shared/fixtures (real COLMAP and OpenMVG outputs); never modified by tests."""
+    if not FIXTURES.is_dir():
+        pytest.fail(f"real fixtures not found at {FIXTURES} (clone beside ../shared)")
+    return FIXTURES
+
+
+@pytest.fixture(scope="session")
+def small_dataset(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+    """The demo's small synthetic data set (real SfM with pycolmap), made once per session."""
+    from sfm_laserscale.synthetic.dataset import DemoDataOptions, make_demo_dataset
+
+    out = tmp_path_factory.mktemp("small_dataset") / "data"
+    return make_demo_dataset(out, DemoDataOptions(small=True, seed=0, progress=False))
