@@ -64,6 +64,11 @@ class ImageCombination:
         """Total σ of the image value (random and rig)."""
         return float(np.hypot(self.sigma_random, np.linalg.norm(self.rig_gradient)))
 
+    @property
+    def weight_sigma(self) -> float:
+        """σ that weights this image across images: the random part (the total if it is 0)."""
+        return self.sigma_random if self.sigma_random > 0 else self.sigma
+
 
 @dataclass(frozen=True)
 class FusedScale:
@@ -183,7 +188,7 @@ def _reject_images(combos: list[ImageCombination], options: FusionOptions
     dropped: list[tuple[ImageCombination, str]] = []
     while len(kept) >= max(3, options.min_images_for_rejection):
         v = np.array([c.value for c in kept])
-        s = np.array([c.sigma_random for c in kept])
+        s = np.array([c.weight_sigma for c in kept])
         centre = _weighted_median(v, 1.0 / s**2)
         z = (v - centre) / s
         spread = max(1.0, 1.4826 * float(np.median(np.abs(z))))
@@ -203,7 +208,7 @@ def _birge(combos: list[ImageCombination], w: F64, g: F64) -> tuple[float, int]:
         c = combos[0]
         return (float(np.sqrt(c.chi2 / c.dof)), c.dof) if c.dof > 0 else (float("nan"), 0)
     v = np.array([c.value for c in combos])
-    cov = np.diag([c.sigma_random**2 for c in combos]) + g @ g.T
+    cov = np.diag([c.weight_sigma**2 for c in combos]) + g @ g.T
     p = np.eye(n) - np.outer(np.ones(n), w)
     r = p @ v
     chi2 = float(r @ np.linalg.pinv(p @ cov @ p.T, rcond=1e-10, hermitian=True) @ r)
@@ -245,11 +250,11 @@ def _combine_images(kept: list[ImageCombination], method: str, options: FusionOp
                     n_used: int, rejected: list[tuple[str, str, str]],
                     per_image: dict[str, tuple[float, float]]) -> FusedScale:
     """Inverse-variance mean, Birge inflation, systematic rig term and interval."""
-    sig = np.array([c.sigma_random for c in kept])
+    sig = np.array([c.weight_sigma for c in kept])
     w = (1.0 / sig**2) / np.sum(1.0 / sig**2)
     value = float(w @ np.array([c.value for c in kept]))
     g, _ = _align_rig(kept)
-    sigma_rand = float(np.sqrt(1.0 / np.sum(1.0 / sig**2)))
+    sigma_rand = float(np.sqrt(w**2 @ np.array([c.sigma_random**2 for c in kept])))
     sigma_sys = float(np.linalg.norm(w @ g))
     birge, dof = _birge(kept, w, g)
     alpha = 1.0 - options.confidence

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 F64 = NDArray[np.float64]
 
@@ -23,25 +24,7 @@ def rotmat_from_qvec(qvec_wxyz: F64) -> F64:
 
 def qvec_from_rotmat(R: F64) -> F64:
     """Quaternion (w, x, y, z) with w >= 0 from a 3×3 rotation matrix."""
-    R = np.asarray(R, dtype=np.float64)
-    K = (
-        np.array(
-            [
-                [R[0, 0] - R[1, 1] - R[2, 2], 0, 0, 0],
-                [R[1, 0] + R[0, 1], R[1, 1] - R[0, 0] - R[2, 2], 0, 0],
-                [R[2, 0] + R[0, 2], R[2, 1] + R[1, 2], R[2, 2] - R[0, 0] - R[1, 1], 0],
-                [
-                    R[1, 2] - R[2, 1],
-                    R[2, 0] - R[0, 2],
-                    R[0, 1] - R[1, 0],
-                    R[0, 0] + R[1, 1] + R[2, 2],
-                ],
-            ]
-        )
-        / 3.0
-    )
-    vals, vecs = np.linalg.eigh(K)
-    x, y, z, w = vecs[:, int(np.argmax(vals))]
+    x, y, z, w = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
     q = np.array([w, x, y, z])
     return q if q[0] >= 0 else -q
 

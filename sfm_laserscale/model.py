@@ -28,6 +28,13 @@ CAMERA_MODEL_NUM_PARAMS: dict[str, int] = {
     "SIMPLE_RADIAL_FISHEYE": 4,
     "RADIAL_FISHEYE": 5,
     "THIN_PRISM_FISHEYE": 12,
+    "RAD_TAN_THIN_PRISM_FISHEYE": 16,
+    "SIMPLE_DIVISION": 4,
+    "DIVISION": 5,
+    "SIMPLE_FISHEYE": 3,
+    "FISHEYE": 4,
+    "EUCM": 6,
+    "EQUIRECTANGULAR": 2,
 }
 #: COLMAP model id (binary files) -> name.
 CAMERA_MODEL_NAMES: dict[int, str] = {
@@ -42,6 +49,13 @@ CAMERA_MODEL_NAMES: dict[int, str] = {
     8: "SIMPLE_RADIAL_FISHEYE",
     9: "RADIAL_FISHEYE",
     10: "THIN_PRISM_FISHEYE",
+    11: "RAD_TAN_THIN_PRISM_FISHEYE",
+    12: "SIMPLE_DIVISION",
+    13: "DIVISION",
+    14: "SIMPLE_FISHEYE",
+    15: "FISHEYE",
+    16: "EUCM",
+    17: "EQUIRECTANGULAR",
 }
 CAMERA_MODEL_IDS: dict[str, int] = {v: k for k, v in CAMERA_MODEL_NAMES.items()}
 
@@ -88,6 +102,8 @@ class Camera:
             "FOV",
             "SIMPLE_RADIAL_FISHEYE",
             "RADIAL_FISHEYE",
+            "SIMPLE_DIVISION",
+            "SIMPLE_FISHEYE",
         ):
             return float(self.params[0])
         return float(0.5 * (self.params[0] + self.params[1]))

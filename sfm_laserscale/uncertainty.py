@@ -11,12 +11,19 @@ and gives the joint covariance of the image's estimates (they share the pose err
 Inputs and their covariance (blocks are independent):
 - spot pixels: σ_px² I per spot (per axis, COLMAP pixel convention);
 - pose: ``pose_covariance`` (6×6), ordered [rotation (3, rad), translation (3, model units)],
-  LEFT perturbation R' = exp([δ]ₓ) R, t' = t + δt (see :func:`perturb_pose`, the one place
-  where this parametrisation lives);
+  LEFT perturbation R' = exp([δ]ₓ) R, t' = t + δt (see :func:`perturb_poses`, the one place
+  where this parametrisation lives). With this convention the rotation turns about the WORLD
+  origin, so the covariance belongs to the world frame of the model it was estimated in: if
+  the model is moved by X' = R_w X + t_w, translate it with δt' = δt + [R R_wᵀ t_w]ₓ δrot;
 - rig (per calibrated laser, when the rig gives them): origin offset on the laser plane (x, y,
   ``sigma_origin`` metres each) and beam tilt about its origin (two angles perpendicular to the
-  beam, ``sigma_direction`` radians each). Rig errors are common to all images; they are kept
-  apart (``rig_jacobian``) so that fusion does not average them down.
+  beam, ``sigma_direction`` radians each). FCM depends on them directly; PCM and Direct 3D
+  through the change of the two beams' perpendicular separation at the hits (when both lasers
+  of the pair are calibrated). Rig errors are common to all images; they are kept apart
+  (``rig_jacobian``) so that fusion does not average them down.
+
+The hits must lie on the spots' rays from ``cam_from_world`` (a warning is logged otherwise);
+the normal's orientation does not matter.
 """
 
 from __future__ import annotations

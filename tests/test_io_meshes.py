@@ -46,6 +46,7 @@ def _faces(polygons: list[list[int]], seed: int = 1) -> np.ndarray:
 
 
 TRIANGLES = [[0, 1, 2], [2, 3, 4], [4, 5, 6], [6, 7, 8], [8, 9, 10], [10, 11, 0], [1, 3, 5]]
+QUADS = [[0, 1, 2, 3], [3, 4, 5, 6], [6, 7, 8, 9], [9, 10, 11, 0]]
 MIXED = [[0, 1, 2, 3], [3, 4, 5], [5, 6, 7, 8, 9], [9, 10, 11], [11, 0, 1]]
 
 
@@ -80,7 +81,7 @@ def _header_len(raw: bytes) -> int:
 
 @pytest.mark.parametrize("fmt", ["le", "be", "ascii"])
 @pytest.mark.parametrize("vertex_first", [True, False])
-@pytest.mark.parametrize("polygons", [TRIANGLES, MIXED], ids=["tris", "mixed"])
+@pytest.mark.parametrize("polygons", [TRIANGLES, QUADS, MIXED], ids=["tris", "quads", "mixed"])
 def test_load_ply(tmp_path: Path, fmt: str, vertex_first: bool,
                   polygons: list[list[int]]) -> None:
     v = _write_ply(tmp_path / "m.ply", fmt, polygons, vertex_first)
@@ -91,6 +92,7 @@ def test_load_ply(tmp_path: Path, fmt: str, vertex_first: bool,
     np.testing.assert_array_equal(mesh.vertices, expected)
     np.testing.assert_array_equal(mesh.triangles, _fan(polygons))
     np.testing.assert_array_equal(mesh.bounds, [expected.min(0), expected.max(0)])
+    assert mesh.extent == pytest.approx(np.linalg.norm(np.ptp(expected, axis=0)))
 
 
 def test_load_and_rescale_ply_with_list_property_in_vertex(tmp_path: Path) -> None:
@@ -487,6 +489,21 @@ BAD_CASES: dict[str, tuple[str, bytes]] = {
                    b"property float x\nproperty float y\nproperty float z\n"
                    b"element face 1\nproperty list uchar int vertex_indices\n"
                    b"end_header\n0 0 0\n1 zero 0\n0 1 0\n3 0 1 2\n"),
+    "ascii bad list length": ("l.ply", b"ply\nformat ascii 1.0\nelement vertex 3\n"
+                              b"property float x\nproperty float y\nproperty float z\n"
+                              b"element face 1\nproperty list uchar int vertex_indices\n"
+                              b"end_header\n0 0 0\n1 0 0\n0 1 0\n5 0 1 2\n"),
+    "ascii fractional index": ("fi.ply", b"ply\nformat ascii 1.0\nelement vertex 3\n"
+                               b"property float x\nproperty float y\nproperty float z\n"
+                               b"element face 1\nproperty list uchar int vertex_indices\n"
+                               b"end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1.5 2\n"),
+    "ascii short vertex row": ("sv.ply", b"ply\nformat ascii 1.0\nelement vertex 3\n"
+                               b"property float x\nproperty float y\nproperty float z\n"
+                               b"element face 1\nproperty list uchar int vertex_indices\n"
+                               b"end_header\n0 0 0\n1 0\n0 1 0\n3 0 1 2\n"),
+    "no vertex element": ("nv.ply", b"ply\nformat ascii 1.0\nelement face 1\n"
+                          b"property list uchar int vertex_indices\nend_header\n3 0 1 2\n"),
+    "bad format": ("bf.ply", b"ply\nformat binary_middle_endian 1.0\nend_header\n"),
     "obj nan": ("nan.obj", b"v 0 0 0\nv 1 inf 0\nv 0 1 0\nf 1 2 3\n"),
     "obj out of range": ("r.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n"),
     "obj negative out of range": ("nr.obj", b"v 0 0 0\nv 1 0 0\nf -1 -2 -3\n"),
@@ -501,6 +518,23 @@ BAD_CASES: dict[str, tuple[str, bytes]] = {
     "off junk": ("o.off", b"OFF\n3 1 0\n0 0 0\n1 0\n"),
     "stl junk": ("s.stl", b"\x00" * 80 + struct.pack("<I", 5) + b"\x00" * 20),
 }
+
+
+RESCALE_BAD_CASES = ["empty", "not ply", "no end_header", "bad header line", "ascii too few rows",
+                     "obj bad v", "obj binary junk", "unknown extension", "glb junk",
+                     "gltf junk", "off junk", "stl junk", "no vertex element", "bad format",
+                     "glb bad magic", "ascii short vertex row"]
+BAD_CASES["glb bad magic"] = ("m.glb", b"GLTF" + bytes(40))
+
+
+@pytest.mark.parametrize("case", RESCALE_BAD_CASES)
+def test_rescale_input_errors(tmp_path: Path, case: str) -> None:
+    name, data = BAD_CASES[case]
+    path = tmp_path / name
+    path.write_bytes(data)
+    with pytest.raises(InputError) as err:
+        write_scaled_mesh(path, tmp_path / "out", SCALE)
+    assert err.value.path == str(path)
 
 
 @pytest.mark.parametrize("case", sorted(BAD_CASES))
@@ -572,3 +606,251 @@ def test_rescale_errors(tmp_path: Path) -> None:
         write_scaled_mesh(obj, tmp_path / "out", SCALE)
     assert not (tmp_path / "out" / "bad.obj").exists()  # no partial output left behind
     assert not list((tmp_path / "out").glob("*.partial"))
+
+
+# ----------------------------------------------------------------------------- code paths
+
+
+def _single_list_ply(path: Path, sizes: list[int], truncate: int = 0) -> tuple[np.ndarray, list]:
+    """Binary LE PLY, faces (one uchar list, mixed sizes) before vertices: the fast row loop."""
+    rng = np.random.default_rng(5)
+    xyz = rng.normal(size=(10, 3)).astype("<f4")
+    polys = [list(rng.choice(10, n, replace=False)) for n in sizes]
+    faces = b"".join(struct.pack(f"<B{len(p)}i", len(p), *p) for p in polys)
+    header = (f"ply\r\nformat binary_little_endian 1.0\r\nobj_info made by hand\r\n"
+              f"element face {len(polys)}\r\nproperty list uchar int vertex_indices\r\n"
+              f"element vertex 10\r\nproperty float x\r\nproperty float y\r\nproperty float z\r\n"
+              f"end_header\r\n").encode()
+    data = header + faces + xyz.tobytes()
+    path.write_bytes(data[: len(data) - truncate])
+    return xyz, polys
+
+
+def test_single_list_variable_faces_before_vertices(tmp_path: Path) -> None:
+    (tmp_path / "in").mkdir()
+    src = tmp_path / "in" / "s.ply"
+    xyz, polys = _single_list_ply(src, [3, 4, 3, 5, 3, 3, 4])
+    mesh = load_mesh(src)
+    np.testing.assert_array_equal(mesh.vertices, xyz.astype(np.float64))
+    np.testing.assert_array_equal(mesh.triangles, _fan(polys))
+    out = write_scaled_mesh(src, tmp_path / "out", SCALE)[0].read_bytes()
+    raw = src.read_bytes()
+    assert out[: len(raw) - 120] == raw[: len(raw) - 120]
+    np.testing.assert_array_equal(np.frombuffer(out[-120:], "<f4").reshape(10, 3),
+                                  (xyz * SCALE).astype(np.float32))
+    _single_list_ply(src, [3, 4, 3, 5, 3, 3, 4], truncate=120 + 5)  # cut inside the faces
+    with pytest.raises(InputError, match="truncated"):
+        load_mesh(src)
+    with pytest.raises(InputError, match="truncated"):
+        write_scaled_mesh(src, tmp_path / "out", SCALE)
+
+
+def test_streaming_in_small_chunks_and_without_sendfile(tmp_path: Path,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Multi-chunk PLY/OBJ rewriting gives the same bytes as one chunk (and no sendfile)."""
+    from sfm_laserscale.io import meshes
+
+    ply = tmp_path / "in" / "mesh.ply"
+    ply.parent.mkdir()
+    _write_ply(ply, "be", MIXED, vertex_first=False)
+    obj = _write_obj(tmp_path / "in")
+    reference = [p.read_bytes() for p in (write_scaled_mesh(ply, tmp_path / "a", SCALE)[0],
+                                          write_scaled_mesh(obj, tmp_path / "a", SCALE)[0])]
+
+    def no_sendfile(*args: object) -> int:
+        raise OSError("sendfile not supported")
+
+    monkeypatch.setattr(meshes, "_SCALE_CHUNK", 3 * 37)  # 3 vertex rows per chunk
+    monkeypatch.setattr(meshes, "_COPY_CHUNK", 16)
+    monkeypatch.setattr(meshes.os, "sendfile", no_sendfile)
+    chunked = [p.read_bytes() for p in (write_scaled_mesh(ply, tmp_path / "b", SCALE)[0],
+                                        write_scaled_mesh(obj, tmp_path / "b", SCALE)[0])]
+    assert chunked == reference
+    bad = tmp_path / "in" / "bad.obj"
+    bad.write_bytes(b"# a long enough comment line\n" * 5 + b"v 1 2 3\nv 1 2 x\nf 1 2 3\n")
+    with pytest.raises(InputError, match="line 7: bad vertex line"):
+        write_scaled_mesh(bad, tmp_path / "b", SCALE)
+
+
+def test_obj_fast_and_line_readers_agree(tmp_path: Path) -> None:
+    """Well-formed OBJ (vectorised reader) vs the same file made to need the line reader."""
+    rng = np.random.default_rng(11)
+    verts = rng.normal(size=(7, 3)).tolist()
+    faces = ["f 1/1/1 2/2/1 3/3/1", "f 3//2 4//2 5//2 6//2", "f 7 1 2", "f 2/1 4/2 6/3 7/4 5/5"]
+    plain = "".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in verts) + "\n".join(faces) + "\n"
+    (tmp_path / "a.obj").write_text(plain)
+    (tmp_path / "b.obj").write_text(plain.replace("f 7 1 2", "  f 7 1 -6"))  # indent, negative
+    a, b = load_mesh(tmp_path / "a.obj"), load_mesh(tmp_path / "b.obj")
+    np.testing.assert_array_equal(a.vertices, verts)
+    np.testing.assert_array_equal(a.triangles, _fan([[0, 1, 2], [2, 3, 4, 5], [6, 0, 1],
+                                                     [1, 3, 5, 6, 4]]))
+    np.testing.assert_array_equal(a.vertices, b.vertices)
+    np.testing.assert_array_equal(a.triangles, b.triangles)
+
+
+def test_gltf_node_transforms_scale_with_the_positions(tmp_path: Path) -> None:
+    """A translated + rotated node: the rescaled scene is the original scene x scale."""
+    scene = trimesh.Scene()
+    transform = trimesh.transformations.rotation_matrix(0.7, [0, 0, 1])
+    transform[:3, 3] = [5.0, -2.0, 1.0]
+    scene.add_geometry(_box(), transform=transform)
+    scene.add_geometry(trimesh.creation.icosphere(subdivisions=1), transform=np.eye(4))
+    (tmp_path / "in").mkdir()
+    src = tmp_path / "in" / "scene.glb"
+    src.write_bytes(scene.export(file_type="glb"))
+    written = write_scaled_mesh(src, tmp_path / "out", SCALE)
+    before, after = load_mesh(src), load_mesh(written[0])
+    assert after.num_triangles == before.num_triangles == 12 + 80
+    np.testing.assert_allclose(after.vertices, before.vertices * SCALE, rtol=1e-6, atol=1e-6)
+
+
+def test_side_files_outside_the_folder_are_not_copied(tmp_path: Path) -> None:
+    (tmp_path / "in").mkdir()
+    (tmp_path / "outside.png").write_bytes(TEXTURE_BYTES)
+    src = tmp_path / "in" / "m.obj"
+    src.write_text("mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    (tmp_path / "in" / "m.mtl").write_text("newmtl a\nmap_Kd ../outside.png\n")
+    written = write_scaled_mesh(src, tmp_path / "in" / "out", SCALE)
+    assert written == [tmp_path / "in" / "out" / "m.obj", tmp_path / "in" / "out" / "m.mtl"]
+    assert not (tmp_path / "in" / "outside.png").exists()
+
+
+def _pack_glb(doc: dict, binary: bytes) -> bytes:
+    js = json.dumps(doc).encode()
+    js += b" " * (-len(js) % 4)
+    binary += b"\0" * (-len(binary) % 4)
+    body = (struct.pack("<II", len(js), 0x4E4F534A) + js
+            + struct.pack("<II", len(binary), 0x004E4942) + binary)
+    return b"glTF" + struct.pack("<II", 2, 12 + len(body)) + body
+
+
+def test_gltf_trs_node_translation(tmp_path: Path) -> None:
+    scene = trimesh.Scene()
+    scene.add_geometry(_box())
+    src = tmp_path / "in" / "trs.glb"
+    src.parent.mkdir()
+    src.write_bytes(scene.export(file_type="glb"))
+    doc, binary = _gltf_json(src), _gltf_buffer_bytes(src)[0]
+    for node in doc["nodes"]:
+        node.pop("matrix", None)
+        if "mesh" in node:
+            node.update(translation=[5.0, -2.0, 1.0], rotation=[0.0, 0.0, 0.3826834, 0.9238795],
+                        scale=[2.0, 2.0, 2.0])
+    src.write_bytes(_pack_glb(doc, binary))
+    written = write_scaled_mesh(src, tmp_path / "out", SCALE)
+    before, after = load_mesh(src), load_mesh(written[0])
+    assert np.ptp(before.vertices[:, 2]) == pytest.approx(6.0)  # the node scale is applied
+    np.testing.assert_allclose(after.vertices, before.vertices * SCALE, rtol=1e-6, atol=1e-6)
+    node = next(n for n in _gltf_json(written[0])["nodes"] if "mesh" in n)
+    assert node["translation"] == [5.0 * SCALE, -2.0 * SCALE, 1.0 * SCALE]
+    assert node["scale"] == [2.0, 2.0, 2.0]
+
+
+def test_gltf_data_uri_buffers_and_external_images(tmp_path: Path) -> None:
+    import cv2
+    from trimesh.exchange.gltf import export_gltf
+
+    scene = trimesh.Scene()
+    scene.add_geometry(_box())
+    files = export_gltf(scene, embed_buffers=True)
+    assert list(files) == ["model.gltf"]
+    doc = json.loads(files["model.gltf"])
+    assert doc["buffers"][0]["uri"].startswith("data:")
+    doc["images"] = [{"uri": "textures/t%20x.png"}]  # URI-encoded space
+    src = tmp_path / "in" / "m.gltf"
+    (tmp_path / "in" / "textures").mkdir(parents=True)
+    cv2.imwrite(str(tmp_path / "in" / "textures" / "t x.png"), np.zeros((4, 4, 3), np.uint8))
+    src.write_text(json.dumps(doc))
+    written = write_scaled_mesh(src, tmp_path / "out", SCALE)
+    assert written == [tmp_path / "out" / "m.gltf", tmp_path / "out" / "textures" / "t x.png"]
+    out_doc = _gltf_json(written[0])
+    assert out_doc["buffers"][0]["uri"].startswith("data:")
+    np.testing.assert_allclose(load_mesh(written[0]).vertices, load_mesh(src).vertices * SCALE)
+
+
+def test_gltf_quantised_positions_are_refused(tmp_path: Path) -> None:
+    src = tmp_path / "q.glb"
+    src.write_bytes(_box().export(file_type="glb"))
+    doc, binary = _gltf_json(src), _gltf_buffer_bytes(src)[0]
+    pos = doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"]
+    doc["accessors"][pos]["componentType"] = 5123  # unsigned short (KHR_mesh_quantization)
+    src.write_bytes(_pack_glb(doc, binary))
+    with pytest.raises(InputError, match="quantised"):
+        write_scaled_mesh(src, tmp_path / "out", SCALE)
+
+
+_HEAD = b"ply\nformat ascii 1.0\n"
+_XYZ = b"property float x\nproperty float y\nproperty float z\n"
+_FACE = b"element face 1\nproperty list uchar int vertex_indices\n"
+HEADER_ERRORS = {
+    "bad element count": (_HEAD + b"element vertex many\nend_header\n", "bad PLY element"),
+    "property first": (_HEAD + b"property float x\nend_header\n", "before any element"),
+    "no format": (b"ply\nelement vertex 0\nend_header\n", "no format line"),
+    "repeated property": (_HEAD + b"element vertex 1\nproperty float x\nproperty float x\n"
+                          b"end_header\n", "repeats a property"),
+    "float list length": (_HEAD + b"element face 1\nproperty list float int vertex_indices\n"
+                          b"end_header\n", "bad PLY list property"),
+    "unknown type": (_HEAD + b"element vertex 1\nproperty real x\nend_header\n",
+                     "bad PLY property"),
+    "no z": (_HEAD + b"element vertex 1\nproperty float x\nproperty float y\n" + _FACE
+             + b"end_header\n", "no scalar property 'z'"),
+    "no vertex_indices": (_HEAD + b"element vertex 3\n" + _XYZ
+                          + b"element face 1\nproperty list uchar int corners\nend_header\n",
+                          "no 'vertex_indices'"),
+    "negative list length": (_HEAD + b"element vertex 3\n" + _XYZ + _FACE
+                             + b"end_header\n0 0 0\n1 0 0\n0 1 0\n-1 0 1 2\n",
+                             "bad list length"),
+    "binary negative length": (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\n" + _XYZ
+                               + b"element face 1\nproperty list char int vertex_indices\n"
+                               b"end_header\n" + bytes(12) + b"\xff", "negative list length"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(HEADER_ERRORS))
+def test_ply_structure_errors(tmp_path: Path, case: str) -> None:
+    data, message = HEADER_ERRORS[case]
+    path = tmp_path / "h.ply"
+    path.write_bytes(data)
+    with pytest.raises(InputError, match=message):
+        load_mesh(path)
+
+
+def test_faces_with_two_vertices_are_skipped(tmp_path: Path,
+                                             caplog: pytest.LogCaptureFixture) -> None:
+    path = tmp_path / "two.ply"
+    path.write_bytes(_HEAD + b"element vertex 3\n" + _XYZ + b"element face 2\n"
+                     b"property list uchar int vertex_indices\nend_header\n"
+                     b"0 0 0\n1 0 0\n0 1 0\n2 0 1\n3 0 1 2\n")
+    mesh = load_mesh(path)
+    np.testing.assert_array_equal(mesh.triangles, [[0, 1, 2]])
+    assert "skipped 1 faces" in caplog.text
+
+
+OTHER_RESCALE_ERRORS = {
+    "off no counts": ("a.off", b"OFF\n# nothing\n", "no vertex count"),
+    "off truncated": ("b.off", b"OFF\n3 1 0\n0 0 0\n1 0 0\n", "ends inside the vertex list"),
+    "noff": ("c.off", b"nOFF\n4\n1 1 0\n", "unsupported nOFF"),
+    "off bad vertex": ("d.off", b"OFF\n3 1 0\n0 0 0\n1 0\n0 1 0\n3 0 1 2\n", "line 4:"),
+    "gltf json array": ("e.gltf", b"[1, 2]", "not an object"),
+    "gltf missing buffer": ("f.gltf", json.dumps({"buffers": [{"uri": "no.bin"}]}).encode(),
+                            "not found"),
+    "glb truncated chunk": ("g.glb", b"glTF" + struct.pack("<IIII", 2, 40, 100, 0x4E4F534A)
+                            + b"{}" + bytes(18), "truncated GLB chunk"),
+    "gltf bad accessor": ("h.gltf", json.dumps({"meshes": [{"primitives": [
+        {"attributes": {"POSITION": 3}}]}], "accessors": []}).encode(), "invalid glTF"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(OTHER_RESCALE_ERRORS))
+def test_other_rescale_errors(tmp_path: Path, case: str) -> None:
+    name, data, message = OTHER_RESCALE_ERRORS[case]
+    (tmp_path / name).write_bytes(data)
+    with pytest.raises(InputError, match=message):
+        write_scaled_mesh(tmp_path / name, tmp_path / "out", SCALE)
+    assert not (tmp_path / "out" / name).exists()
+
+
+def test_directory_is_not_a_mesh(tmp_path: Path) -> None:
+    (tmp_path / "d.ply").mkdir()
+    with pytest.raises(InputError, match="not a file"):
+        load_mesh(tmp_path / "d.ply")

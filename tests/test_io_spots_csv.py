@@ -116,3 +116,9 @@ def test_missing_and_binary_files(tmp_path: Path) -> None:
 def test_no_image_names_keeps_entries_as_written(tmp_path: Path) -> None:
     path = _write(tmp_path, "image,laser,x,y\n/abs/09.jpg,L1,1,2\n")
     assert list(read_spots_csv(path, None, LASERS)) == ["/abs/09.jpg"]
+
+
+def test_malformed_csv(tmp_path: Path) -> None:
+    path = _write(tmp_path, "image,laser,x,y\n" + "a" * 200_000 + ",L1,1,2\n")  # > csv limit
+    with pytest.raises(InputError, match="bad CSV"):
+        read_spots_csv(path, None, LASERS)

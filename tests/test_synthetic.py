@@ -21,6 +21,7 @@ from sfm_laserscale.synthetic.dataset import (
     DemoDataset,
     make_demo_dataset,
     make_rig,
+    overlapping_pairs,
     true_spots,
 )
 from sfm_laserscale.synthetic.render import (
@@ -56,7 +57,7 @@ def _centroid(weights: np.ndarray) -> np.ndarray:
     """Intensity centroid in COLMAP pixels (pixel (i, j) centre at (j + 0.5, i + 0.5))."""
     rows, cols = np.indices(weights.shape)
     total = weights.sum()
-    return np.array([((cols + 0.5) * weights).sum() / total, ((rows + 0.5) * weights).sum() / total])
+    return np.array([((cols + 0.5) * weights).sum(), ((rows + 0.5) * weights).sum()]) / total
 
 
 @pytest.mark.parametrize("supersampling", [1, 2])
@@ -129,7 +130,7 @@ def test_true_spots_on_a_plane_match_closed_form(kind: str) -> None:
         hit_cam = las.origin + (depth / las.direction[2]) * las.direction  # plane z_cam = depth
         f, cx, cy = 560.0, 320.0, 240.0
         expected = (cx + f * hit_cam[0] / depth, cy + f * hit_cam[1] / depth)
-        assert spot.visible
+        assert spot.visible and spot.xy_px is not None
         np.testing.assert_allclose(spot.xy_px, expected, atol=1e-6)
 
 
@@ -138,7 +139,9 @@ def test_rov_rig_pair_is_parallel_and_misaligned_beams_are_not() -> None:
     d = {las.name: las.direction for las in rig.lasers}
     np.testing.assert_array_equal(d["L1"], d["L2"])
     for name in ("L1", "L3", "L4"):
-        off_axis = np.degrees(np.arccos(d[name][2]))
+        v = d[name]
+        assert v is not None
+        off_axis = np.degrees(np.arccos(v[2]))
         assert 1.0 <= off_axis <= 3.0
     assert rig.pairs[0].lasers == ("L1", "L2")
     assert rig.pairs[0].separation == pytest.approx(0.234)
@@ -166,9 +169,9 @@ def test_scene_is_seeded_and_sized() -> None:
 
 
 @pytest.fixture(scope="module")
-def small_demo(tmp_path_factory: pytest.TempPathFactory) -> DemoDataset:
-    out = tmp_path_factory.mktemp("demo")
-    return make_demo_dataset(out, DemoDataOptions(small=True, progress=False, seed=1))
+def small_demo(small_dataset: DemoDataset) -> DemoDataset:
+    """conftest's session-wide small data set (seed 0), made once for every test file."""
+    return small_dataset
 
 
 @pytest.mark.slow
@@ -208,15 +211,20 @@ def test_small_demo_truth_spots_are_consistent(small_demo: DemoDataset) -> None:
     assert len(truth["laser_images"]) == 3
     for entry in truth["laser_images"]:
         img = cv2.imread(str(ds.laser_images_dir / entry["name"]))
-        assert img.shape == (480, 640, 3)
+        assert img is not None and img.shape == (480, 640, 3)
         cam_from_model = _pose(entry["cam_from_model"])
         visible = [s for s in entry["spots"] if s["visible"]]
         assert len(visible) == 4
         for s in visible:
             assert 0 < s["x"] < 640 and 0 < s["y"] < 480
-            xy = ds.camera.project(cam_from_model.transform(np.array([s["hit_model"]])))[0]
+            x_cam = cam_from_model.transform(np.array([s["hit_model"]]))[0]  # model units
+            xy = ds.camera.project(x_cam[None, :])[0]
             np.testing.assert_allclose(xy, [s["x"], s["y"]], atol=1e-6)
             assert img[int(s["y"]), int(s["x"]), 2] >= 250  # saturated red channel (BGR)
+            las = ds.rig.laser(s["laser"])
+            assert las.origin is not None and las.direction is not None
+            o_hat = x_cam - (x_cam[2] / las.direction[2]) * las.direction  # FCM, DESIGN §3
+            np.testing.assert_allclose(o_hat * ds.true_scale, las.origin, atol=1e-9)
     rows = ds.spots_path.read_text().strip().splitlines()
     assert rows[0] == "image,laser,x,y" and len(rows) == 1 + 3 * 4
     rig = load_rig(ds.rig_path)
@@ -233,14 +241,33 @@ def test_small_demo_mesh_agrees_with_sparse_points(small_demo: DemoDataset) -> N
     faces = np.vstack(ply["face"].data["vertex_indices"]).astype(np.uint32)
     scene = o3d.t.geometry.RaycastingScene()
     offset = xyz.mean(axis=0)
-    scene.add_triangles(o3d.core.Tensor((xyz - offset).astype(np.float32)),
-                        o3d.core.Tensor(faces))
+    scene.add_triangles(o3d.core.Tensor.from_numpy((xyz - offset).astype(np.float32)),
+                        o3d.core.Tensor.from_numpy(faces))
     rec = pycolmap.Reconstruction(str(ds.model_dir))
     pts = np.array([p.xyz for p in rec.points3D.values()])
-    dist = scene.compute_distance(o3d.core.Tensor((pts - offset).astype(np.float32))).numpy()
+    query = o3d.core.Tensor.from_numpy((pts - offset).astype(np.float32))
+    dist = scene.compute_distance(query).numpy()
     extent = np.linalg.norm(xyz.max(axis=0) - xyz.min(axis=0))
     assert np.median(dist) < 0.01 * extent
     assert np.median(dist) * ds.true_scale < 0.005  # metres: below 5 mm
+    truth = json.loads(ds.truth_path.read_text())
+    for entry in truth["laser_images"]:  # the ray through a true spot meets the mesh at its hit
+        pose = _pose(entry["cam_from_model"])
+        for s in entry["spots"]:
+            ray = pose.R.T @ ds.camera.unproject(np.array([[s["x"], s["y"]]]))[0]
+            ray /= np.linalg.norm(ray)
+            rays = np.hstack([pose.center - offset, ray])[None, :].astype(np.float32)
+            t = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))["t_hit"].numpy()[0]
+            hit = pose.center + float(t) * ray
+            assert np.linalg.norm(hit - np.array(s["hit_model"])) < 1e-5 * extent
+
+
+def test_overlapping_pairs_follow_the_footprints() -> None:
+    rc = SceneRaycaster(make_plane_scene((20.0, 20.0), np.zeros((4, 4, 3), np.float32)))
+    cam = _camera(320, 240, 300.0)  # footprint at 2 m: 2.13 m × 1.6 m
+    poses = [nadir_pose(np.array([x, 0.0, 2.0])) for x in (0.0, 0.5, 1.9, 5.0)]
+    assert overlapping_pairs(rc, cam, poses, 0.15) == [(0, 1), (1, 2)]
+    assert overlapping_pairs(rc, cam, poses, 0.6) == [(0, 1)]  # 0.5 m shift keeps 77 %
 
 
 def test_demo_refuses_a_non_empty_out_dir(tmp_path: Path) -> None:

@@ -10,10 +10,10 @@ properties); textures named by the file (PLY ``comment TextureFile``, OBJ ``mtll
 are scaled in their own type (product in float64, rounded once); text positions are
 written with the shortest repr that reads back exactly. GLB/glTF: the float POSITION
 accessors (and morph-target positions) are scaled inside the binary buffers, accessor
-min/max, node translations and translation animations with them; buffer bytes other than
-positions are unchanged but the JSON is re-serialised (same content, other formatting).
-glTF with Draco-compressed, quantised or sparse positions falls back to trimesh (load,
-scale, export), which is *not* lossless.
+min/max and node translations with them; buffer bytes other than
+positions are unchanged but the JSON is re-serialised (same content, other formatting);
+animations are not scaled. glTF with Draco-compressed, quantised or sparse positions is
+refused (InputError).
 
 Why our own PLY/OBJ code: plyfile reads list properties row by row in Python (slow on
 millions of faces) and trimesh may merge/reorder vertices and splits OBJ files by
@@ -414,9 +414,8 @@ def _first_row_counts(buf: NDArray[np.uint8], pos: int, elem: _PlyElement, bo: s
 def _scan_binary_element(buf: NDArray[np.uint8], pos: int, elem: _PlyElement, bo: str,
                          path: Path) -> _BinaryElement:
     """Locate the rows of a binary element starting at byte ``pos`` (vectorised when uniform)."""
-    counts = _first_row_counts(buf, pos, elem, bo, path) if elem.count else []
-    if not elem.count:
-        counts = [0] * sum(p.is_list for p in elem.properties)
+    n_lists = sum(p.is_list for p in elem.properties)
+    counts = _first_row_counts(buf, pos, elem, bo, path) if elem.count else [0] * n_lists
     dtype = _row_dtype(elem, counts, bo)
     end = pos + elem.count * dtype.itemsize
     if not elem.has_lists or elem.count == 0:
@@ -817,12 +816,12 @@ def _load_with_trimesh(path: Path) -> tuple[NDArray[Any], NDArray[Any]]:
 # ============================================================================= rescaling
 
 
-def write_scaled_mesh(src: Path, dst_dir: Path, scale: float) -> list[Path]:
+def write_scaled_mesh(src: str | Path, dst_dir: str | Path, scale: float) -> list[Path]:
     """Write ``dst_dir/<src.name>`` with vertex positions × ``scale``; returns written files.
 
     PLY/OBJ/OFF/STL: every other byte unchanged; textures copied with their relative paths.
-    glTF/GLB: positions scaled in the buffers, JSON re-serialised (trimesh, not lossless,
-    for compressed positions). The input is never modified.
+    glTF/GLB: positions scaled in the buffers (node translations too), JSON re-serialised.
+    The input is never modified.
     """
     src, dst_dir = Path(src), Path(dst_dir)
     kind = _mesh_kind(src)
@@ -1099,10 +1098,11 @@ def _write_scaled_obj(src: Path, dst: Path, scale: float) -> list[Path]:
     mtllibs: list[str] = []
 
     def scaled(m: re.Match[bytes]) -> bytes:
-        x, y, z = (float(m[k]) * scale for k in (2, 4, 6))  # ValueError on a bad token
-        return b"%s%r%s%r%s%r" % (m[1], x, m[3], y, m[5], z)  # %r: shortest exact repr
+        # %r: shortest repr that reads back exactly; float() raises ValueError on a bad token
+        return b"%s%r%s%r%s%r" % (m[1], float(m[2]) * scale, m[3], float(m[4]) * scale,
+                                  m[5], float(m[6]) * scale)
 
-    first_line = 1
+    first_line, n_vertices = 1, 0
     with open(src, "rb") as fi, _AtomicOutput(dst) as fo:
         for block in _line_blocks(fi):
             block = b"\n" + block
@@ -1112,10 +1112,13 @@ def _write_scaled_obj(src: Path, dst: Path, scale: float) -> list[Path]:
                 n_scaled = -1
             if n_scaled != len(_OBJ_V_ANY.findall(block)):
                 _raise_bad_xyz_line(block[1:], _OBJ_V, first_line, src)
+            n_vertices += n_scaled
             fo.write(out[1:])
             mtllibs += [m.decode("utf-8", "surrogateescape").strip()
                         for m in _OBJ_MTLLIB.findall(block)]
             first_line += block.count(b"\n") - 1
+        if n_vertices == 0:
+            raise InputError("no 'v' lines: not an OBJ mesh", src)
     written = [dst]
     for entry in mtllibs:
         for name in _mtllib_names(entry, src.parent):
@@ -1308,22 +1311,6 @@ def _scale_gltf_doc(doc: dict[str, Any], buffers: list[bytearray], scale: float)
         if "matrix" in node:  # column-major 4x4: translation is elements 12..14
             node["matrix"] = [v * scale if k in (12, 13, 14) else v
                               for k, v in enumerate(node["matrix"])]
-    _scale_translation_animations(doc, buffers, scale)
-
-
-def _scale_translation_animations(doc: dict[str, Any], buffers: list[bytearray],
-                                  scale: float) -> None:
-    """Scale the output values of animation channels that drive node translations."""
-    for anim in doc.get("animations", []):
-        for channel in anim.get("channels", []):
-            if channel.get("target", {}).get("path") != "translation":
-                continue
-            acc = doc["accessors"][anim["samplers"][channel["sampler"]]["output"]]
-            view = doc["bufferViews"][acc["bufferView"]]
-            offset = int(view.get("byteOffset", 0)) + int(acc.get("byteOffset", 0))
-            arr = np.ndarray((int(acc["count"]), 3), dtype="<f4", buffer=buffers[view["buffer"]],
-                             offset=offset, strides=(int(view.get("byteStride", 12)), 4))
-            arr[...] = arr.astype(np.float64) * scale
 
 
 def _write_scaled_gltf(src: Path, dst: Path, scale: float) -> list[Path]:
@@ -1336,8 +1323,8 @@ def _write_scaled_gltf(src: Path, dst: Path, scale: float) -> list[Path]:
             doc, binary = _parse_json(src.read_bytes(), src), None
             buffers = _gltf_buffers(doc, src, None)
         if not _gltf_can_scale_buffers(doc):
-            logger.warning("%s: compressed/quantised/sparse positions: rescaling via trimesh", src)
-            return _write_with_trimesh(src, dst, scale)
+            raise InputError("glTF with compressed, quantised or sparse positions is not "
+                             "supported: export the mesh as PLY", src)
         _scale_gltf_doc(doc, buffers, scale)
     except (KeyError, IndexError, TypeError, ValueError) as exc:
         if isinstance(exc, InputError):
@@ -1470,28 +1457,4 @@ def _write_scaled_stl(src: Path, dst: Path, scale: float) -> list[Path]:
             if line.lstrip()[:6] == b"vertex":
                 line = _scale_xyz_line(line, _STL_VERTEX, scale, lineno, src)
             fo.write(line)
-    return [dst]
-
-
-def _write_with_trimesh(src: Path, dst: Path, scale: float) -> list[Path]:
-    """Load, scale and export through trimesh (NOT byte-lossless: formatting and extras change)."""
-    import trimesh
-
-    try:
-        scene = trimesh.load_scene(str(src), process=False)
-        scene.apply_scale(scale)
-        exported = scene.export(file_type=src.suffix.lower()[1:])
-    except Exception as exc:  # trimesh raises many types for bad files; translate them all
-        raise InputError(f"cannot rescale mesh: {type(exc).__name__}: {exc}", src) from exc
-    if isinstance(exported, dict):  # glTF: {"model.gltf": json, "<buffer>.bin": data, ...}
-        written = [dst]
-        for name, data in exported.items():
-            target = dst if name.endswith(".gltf") else dst.parent / name
-            with _AtomicOutput(target) as fo:
-                fo.write(data.encode("utf-8") if isinstance(data, str) else data)
-            if target != dst:
-                written.append(target)
-        return written
-    with _AtomicOutput(dst) as fo:
-        fo.write(exported.encode("utf-8") if isinstance(exported, str) else exported)
     return [dst]

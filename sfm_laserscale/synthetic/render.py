@@ -72,10 +72,10 @@ class SceneRaycaster:
         self.scene = scene
         self.offset = scene.vertices.mean(axis=0)  # float32 casts near the origin
         self._rc = o3d.t.geometry.RaycastingScene()
-        self._rc.add_triangles(
-            o3d.core.Tensor((scene.vertices - self.offset).astype(np.float32)),
-            o3d.core.Tensor(scene.triangles.astype(np.uint32)),
-        )
+        self._vertices32 = np.ascontiguousarray(scene.vertices - self.offset, dtype=np.float32)
+        self._triangles32 = np.ascontiguousarray(scene.triangles, dtype=np.uint32)
+        self._rc.add_triangles(o3d.core.Tensor.from_numpy(self._vertices32),
+                               o3d.core.Tensor.from_numpy(self._triangles32))
         # per-triangle corner attributes, gathered once per hit when shading
         self.corner_uv = scene.uv[scene.triangles].astype(np.float32)  # (F, 3, 2)
         self.corner_normals = scene.normals[scene.triangles].astype(np.float32)  # (F, 3, 3)
@@ -93,7 +93,8 @@ class SceneRaycaster:
 
     def cast_rays32(self, rays: F32) -> RayHits:
         """First hits of (N, 6) float32 rays (origin − ``self.offset``, unit direction)."""
-        ans = self._rc.cast_rays(o3d.core.Tensor(rays), nthreads=0)
+        ans = self._rc.cast_rays(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays)),
+                                 nthreads=0)
         prim = ans["primitive_ids"].numpy().astype(np.int64)
         t = ans["t_hit"].numpy()
         hit = np.isfinite(t) & (prim != int(self._rc.INVALID_ID))

@@ -121,7 +121,7 @@ def _make_boulders(rng: np.random.Generator, options: SceneOptions) -> list[_Bou
 
 
 def _boulder_field(boulders: list[_Boulder], xs: F64, ys: F64) -> tuple[F64, F64]:
-    """Boulder height above terrain and a 0..1 rock mask on the grid ``xs`` × ``ys`` (each (ny, nx)).
+    """Boulder height above terrain and a 0..1 rock mask (each (ny, nx)) on the grid xs × ys.
 
     ``xs`` (nx,) and ``ys`` (ny,) are increasing world coordinates; each boulder touches only
     the grid cells inside its bounding box.
@@ -225,7 +225,7 @@ def _sediment(rng: np.random.Generator, shape: tuple[int, int], n_cells: int) ->
 
 
 def _grain(rng: np.random.Generator, shape: tuple[int, int]) -> F32:
-    """(H, W) sand grain: blurred random impulses at three scales (rich in small blobs), unit std."""
+    """(H, W) sand grain: blurred random impulses at three scales (many small blobs), unit std."""
     out = np.zeros(shape, dtype=np.float32)
     for sigma, density in ((1.0, 0.06), (2.0, 0.02), (3.5, 0.008)):
         n = int(density * shape[0] * shape[1])
