@@ -27,6 +27,11 @@ lens (‖O‖ = 0.165 m), all red:
   to each other, 1.5° off the axis (tilted in the camera's y–z plane, so the camera is
   equidistant from both beams) and form the one ``[[pair]]`` (separation 0.234 m) for PCM.
 - ``"parallel"``: four beams parallel to the optical axis; pairs (L1, L2) and (L4, L3).
+
+Spots are painted (``spots.paint_spot``, sigma = focal · ``beam_sigma_m`` / depth) only where the
+beam's first hit projects inside the image and is not occluded from the camera. Rendering is
+seeded and exact; COLMAP's multi-threaded mapping is not bit-reproducible (the true scale of two
+runs agrees to ~1e-7), but every file of one run is consistent with its own truth.json.
 """
 
 from __future__ import annotations

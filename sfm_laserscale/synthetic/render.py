@@ -3,10 +3,13 @@
 One ray per pixel centre in COLMAP's convention (pixel (i, j) — row i, column j — has its
 centre at (x, y) = (j + 0.5, i + 0.5)); with ``supersampling = k`` each pixel averages k × k
 rays at the centres of a regular k × k sub-grid (a box filter, so the centroid convention is
-kept). Texture: bilinear lookup at the barycentric uv of the hit. Shading: Lambert with the
+kept). Texture: trilinear mip-mapped lookup (level from each ray's footprint on the surface, so
+one ray per pixel does not alias) at the barycentric uv of the hit. Shading: Lambert with the
 light at the camera (ROV lamps: inverse-power falloff and a cos^k cone), per-channel water
-attenuation over the two-way path and veiling light towards the water colour. Output: linear
-RGB float32; :func:`sfm_laserscale.synthetic.spots.to_uint8` encodes it.
+attenuation over the two-way path, veiling light towards the water colour, then a fixed or
+automatic exposure. Output: linear RGB float32; :func:`sfm_laserscale.synthetic.spots.to_uint8`
+encodes it. Measured: 1024 × 768 with one ray per pixel ≈ 0.9 s (2 × 2 supersampling ≈ 1.9 s)
+on 2 cores, 320 k triangles.
 
 Poses are ``cam_from_world`` with the camera frame x right, y down, z forward.
 """
