@@ -129,6 +129,7 @@ class _Measure:
     snr: float = 0.0
     radius_px: float = 0.0
     roundness: float = 0.0
+    support_px: float = 0.0
     base_score: float = 0.0
     sigma_px: float = 1.0
     rejected: str | None = None
@@ -332,36 +333,67 @@ def _roundness(region: NDArray[np.bool_]) -> float:
     return float(np.sqrt(max(ev[0], 0.0) / max(ev[1], 1e-12)))
 
 
+@dataclass(frozen=True)
+class _Blob:
+    """Shape and contrast of a colour blob (internal; lengths in pixels)."""
+
+    radius: float  # half-maximum radius, sqrt(area / pi)
+    roundness: float
+    contrast: float  # peak minus surrounding background, colour-response units
+    snr: float
+    support: float  # radius where the radial profile has fallen to SUPPORT_FRACTION
+    rejection: str | None = None
+
+
+#: the spot support ends where the azimuthal mean colour contrast drops below this fraction
+SUPPORT_FRACTION = 0.05
+
+
+def _support_radius(excess: F32, rr: F64, contrast: float, radius: float, limit: float) -> float:
+    """Smallest radius >= max(4, 2 r_half) where the azimuthal mean of ``excess`` is small."""
+    bins = rr.astype(np.int64).ravel()
+    sums = np.bincount(bins, weights=excess.ravel().astype(np.float64))
+    counts = np.maximum(np.bincount(bins), 1)
+    profile = sums / counts
+    start = int(math.ceil(max(4.0, 2.0 * radius)))
+    for r in range(start, min(len(profile), int(limit))):
+        if profile[r] < SUPPORT_FRACTION * contrast:
+            return float(r)
+    return float(max(start, min(len(profile), int(limit)) - 1))
+
+
 def _shape_and_contrast(
     resp: F32, row: int, col: int, max_radius: float, max_annulus_ratio: float
-) -> tuple[float, float, float, float, str | None]:
-    """(radius_px, roundness, contrast, snr, rejection) of the colour blob at (row, col)."""
-    big = int(math.ceil(max_radius)) + 2
+) -> _Blob:
+    """Half-max radius, roundness, contrast, SNR and support of the colour blob at (row, col)."""
+    big = int(math.ceil(2.0 * max_radius)) + 6
     win = _window(resp.shape, row, col, big)
     patch = resp[win]
     r0, c0 = row - win[0].start, col - win[1].start
     peak = float(resp[_window(resp.shape, row, col, 1)].max())
     gx, gy = _grid(win)
     rr = np.hypot(gx - (col + 0.5), gy - (row + 0.5))
-    outer = patch[rr >= big - 3]
+    outer = patch[rr >= big - 4]
     bg = float(np.median(outer)) if outer.size else 0.0
     contrast = peak - bg
     if contrast <= 0:
-        return 0.0, 0.0, contrast, 0.0, "no contrast against its surroundings"
+        return _Blob(0.0, 0.0, contrast, 0.0, 0.0, "no contrast against its surroundings")
     region, touches = _half_max_region(patch, r0, c0, bg + 0.5 * contrast)
     radius = math.sqrt(region.sum() / math.pi)
     roundness = _roundness(region)
     if touches or radius > max_radius:
-        return radius, roundness, contrast, 0.0, (
-            f"too large to be a spot (half-max radius > {max_radius:.1f} px)")
+        return _Blob(radius, roundness, contrast, 0.0, 0.0,
+                     f"too large to be a spot (half-max radius > {max_radius:.1f} px)")
     ring = patch[(rr >= 2.0 * radius + 2.0) & (rr <= 2.0 * radius + 5.0)]
     noise = max(_robust_std(ring - bg), _robust_std(outer), 0.5 / 255.0)
     snr = contrast / noise
+    support = _support_radius(patch - bg, rr, contrast, radius, big - 4)
     ratio = float(np.percentile(ring - bg, 75)) / contrast if ring.size else 0.0
     if ratio > max_annulus_ratio:
-        return radius, roundness, contrast, snr, (
-            f"not compact (coloured surroundings: ring/peak {ratio:.2f} > {max_annulus_ratio})")
-    return radius, roundness, contrast, snr, None
+        return _Blob(radius, roundness, contrast, snr, support,
+                     f"not compact (coloured surroundings: ring/peak {ratio:.2f} > "
+                     f"{max_annulus_ratio:g})")
+    return _Blob(radius, roundness, contrast, snr, support)
 
 
 # ----------------------------------------------------------------------------- sub-pixel
@@ -394,7 +426,7 @@ def _texture_model(
     A = np.column_stack([np.ones(ring.sum()), gx[ring] - x_c, gy[ring] - y_c, other[ring]])
     b = laser[ring]
     # ridge row: with no texture in the ring, ``a`` is undetermined and should stay 0
-    ridge = math.sqrt(len(b)) * 0.01
+    ridge = math.sqrt(len(b)) * 0.002
     keep = np.ones(len(b), dtype=bool)
     coef = np.zeros(4)
     for _ in range(2):
@@ -537,7 +569,7 @@ def _planes(channels: Channels, color: str, options: DetectionOptions) -> _Plane
 def _refine(planes: _Planes, m: _Measure, options: DetectionOptions) -> tuple[float, float, float]:
     """Sub-pixel centre and localisation sigma of one candidate (COLMAP px); NaN if impossible."""
     sigma_w = max(1.0, m.radius_px)
-    patch = spot_patch(planes, m.x, m.y, max(3.0 * sigma_w, 4.0))
+    patch = spot_patch(planes, m.x, m.y, max(m.support_px, 3.0 * sigma_w))
     if patch is None:
         return math.nan, math.nan, math.nan
     if options.refine == "gaussian":
@@ -553,9 +585,10 @@ def _measure_peak(
     row, col = rc
     # integer array index (row, col) -> COLMAP pixel centre (+0.5)
     m = _Measure(x=col + 0.5, y=row + 0.5, color=color, response=dog_value)
-    radius, roundness, contrast, snr, why = _shape_and_contrast(
-        planes.resp, row, col, max_radius, options.max_annulus_ratio)
-    m.radius_px, m.roundness, m.snr = radius, roundness, snr
+    blob = _shape_and_contrast(planes.resp, row, col, max_radius, options.max_annulus_ratio)
+    m.radius_px, m.roundness, m.snr, m.support_px = (blob.radius, blob.roundness, blob.snr,
+                                                     blob.support)
+    why, radius, snr, roundness = blob.rejection, blob.radius, blob.snr, blob.roundness
     if why is None and snr < options.min_snr:
         why = f"weak (SNR {snr:.1f} < {options.min_snr:g})"
     if why is not None:

@@ -21,6 +21,7 @@ from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
 from sfm_laserscale.io.meshes import TriangleMesh, load_mesh
 from sfm_laserscale.io.models import load_model, load_model_features
 from sfm_laserscale.io.spots_csv import read_spots_csv
+from sfm_laserscale.methods.pcm_joint import PcmJointOptions, estimate_pcm_joint
 from sfm_laserscale.model import Camera, Pose, SparseModel, Spot
 from sfm_laserscale.raycast import MeshRaycaster, pixel_rays
 from sfm_laserscale.registration import (
@@ -233,15 +234,33 @@ def process_image(image: LaserImage, loaded: LoadedInputs, caster: MeshRaycaster
                     estimates=est, reason=reason)
 
 
+def _observations(runs: Sequence[ImageRun]) -> list[ImageObservation]:
+    """The estimated images as the estimators' observations (pose, covariance, hits)."""
+    out = []
+    for r in runs:
+        reg = r.registration
+        if r.estimates is None or r.camera is None or reg is None or reg.cam_from_world is None:
+            continue
+        out.append(ImageObservation(image=r.name, camera=r.camera,
+                                    cam_from_world=reg.cam_from_world,
+                                    pose_covariance=reg.covariance, hits=r.hits))
+    return out
+
+
 def fuse_methods(
     runs: Sequence[ImageRun], rig: Rig, options: ScaleOptions
 ) -> tuple[FusedScale, dict[str, FusedScale]]:
-    """Fuse every method over the images; pick the headline (FCM when the rig allows, else PCM)."""
+    """Fuse every method over the images; pick the headline (FCM when the rig allows, else
+    PCM-joint when its joint beam direction was estimated, else PCM)."""
     per_image = [r.estimates for r in runs if r.estimates is not None]
     fused = {m: fuse(per_image, m, options.fusion) for m in METHODS}
-    order = {"fcm": ["fcm"], "pcm": ["pcm"], "all": ["fcm", "pcm"]}[options.method]
+    joint = estimate_pcm_joint(_observations(runs), rig, PcmJointOptions(
+        estimation=options.estimation, fusion=options.fusion))
+    fused["pcm_joint"] = joint.fused
+    pcm = ["pcm_joint", "pcm"] if joint.joint else ["pcm"]
+    order = {"fcm": ["fcm"], "pcm": pcm, "all": ["fcm", *pcm]}[options.method]
     if not rig.has_fcm:
-        order = [m for m in order if m != "fcm"] or ["pcm"]
+        order = [m for m in order if m != "fcm"] or pcm
     headline = next((fused[m] for m in order if np.isfinite(fused[m].value)), fused[order[0]])
     return headline, fused
 

@@ -13,6 +13,12 @@ from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.colmap import read_colmap_model
 from sfm_laserscale.io.colmap_database import read_database_features
 from sfm_laserscale.io.images import IMAGE_SUFFIXES, read_rgb
+from sfm_laserscale.io.openmvg import (
+    find_openmvg_regions_dir,
+    openmvg_model_features,
+    openmvg_regions_are_sift,
+    read_openmvg_sfm_data,
+)
 from sfm_laserscale.model import ImageFeatures, SparseModel
 from sfm_laserscale.registration import ObservationFeatures, TieOptions, features_from_images
 
@@ -36,14 +42,20 @@ class LazyImages(Mapping[str, NDArray[np.uint8]]):
         return len(self._paths)
 
 
+def _is_openmvg(path: Path) -> bool:
+    """An OpenMVG sfm_data file (JSON is read; .bin/.xml get a conversion hint)."""
+    suffix = path.suffix.lower()
+    return path.is_file() and (suffix == ".json" or (suffix in (".bin", ".xml")
+                                                     and "sfm_data" in path.name))
+
+
 def load_model(path: Path) -> SparseModel:
-    """COLMAP model folder (binary or text); InputError for anything else."""
+    """COLMAP model folder (binary or text) or OpenMVG sfm_data.json (with its regions'
+    keypoints when found beside it); InputError for anything else."""
     if not path.exists():
         raise InputError("model not found", path)
-    if path.is_file() and path.suffix.lower() in (".json", ".bin") and "sfm_data" in path.name:
-        raise InputError(
-            "OpenMVG sfm_data input is not supported yet (give a COLMAP model folder)", path
-        )
+    if _is_openmvg(path):
+        return read_openmvg_sfm_data(path)
     return read_colmap_model(path)
 
 
@@ -71,8 +83,10 @@ def load_model_features(
     features_dir: Path | None,
     tie: TieOptions,
 ) -> ModelFeatures:
-    """Descriptors of the model's observations: database first, else SIFT re-extracted."""
-    del model_path, features_dir  # used by the OpenMVG reader (regions beside sfm_data.json)
+    """Descriptors of the model's observations: database (COLMAP) or regions (OpenMVG)
+    first, else SIFT re-extracted."""
+    if model.source_format == "openmvg":
+        return _openmvg_features(model, model_path, database, images_dir, features_dir, tie)
     names = [im.name for im in model.images.values()]
     if database is not None:
         feats = read_database_features(database, names)
@@ -85,3 +99,33 @@ def load_model_features(
         "the model's descriptors are needed: give --database (COLMAP) or --images "
         "(the model's source images, SIFT is re-extracted)"
     )
+
+
+def _openmvg_features(
+    model: SparseModel,
+    model_path: Path,
+    database: Path | None,
+    images_dir: Path | None,
+    features_dir: Path | None,
+    tie: TieOptions,
+) -> ModelFeatures:
+    """OpenMVG regions (--features, else matches/ found beside sfm_data), else re-extraction."""
+    if database is not None:
+        raise InputError(
+            "a COLMAP database cannot describe an OpenMVG model's features: give the OpenMVG "
+            "regions (--features, or matches/ beside sfm_data.json) or --images", database)
+    regions = features_dir if features_dir is not None else find_openmvg_regions_dir(model_path)
+    if regions is not None and (features_dir is not None or images_dir is None
+                                or openmvg_regions_are_sift(regions)):
+        feats = openmvg_model_features(model, model_path, regions)
+        logger.info("descriptors of %d model images read from OpenMVG regions in %s",
+                    len(feats), regions)
+        return feats
+    if images_dir is not None:
+        if regions is not None:
+            logger.warning("OpenMVG regions in %s are not SIFT: SIFT is re-extracted", regions)
+        paths = _source_images(model, images_dir)
+        return features_from_images(model, LazyImages(paths), tie)
+    raise InputError(
+        "the model's descriptors are needed: no OpenMVG regions (.feat/.desc) found in "
+        "matches/ beside sfm_data.json; give --features DIR or --images", model_path)

@@ -19,6 +19,7 @@ from sfm_laserscale.geometry import qvec_from_rotmat
 from sfm_laserscale.io.colmap import write_scaled_colmap_model
 from sfm_laserscale.io.images import read_rgb
 from sfm_laserscale.io.meshes import write_scaled_mesh
+from sfm_laserscale.io.openmvg import write_scaled_openmvg_sfm_data
 from sfm_laserscale.io.spots_csv import write_spots_csv
 from sfm_laserscale.io.transforms import write_matrix_4x4, write_sim3
 from sfm_laserscale.report.html import render_html
@@ -209,10 +210,13 @@ def _write_overlays(
     return written
 
 
-def _write_scaled(out: Path, inputs: ScaleInputs, scale: float) -> None:
+def _write_scaled(out: Path, inputs: ScaleInputs, loaded: LoadedInputs, scale: float) -> None:
     scaled = out / "scaled"
     scaled.mkdir()
-    write_scaled_colmap_model(inputs.model, scaled / "model", scale)
+    if loaded.model.source_format == "openmvg":
+        write_scaled_openmvg_sfm_data(inputs.model, scaled / "model" / "sfm_data.json", scale)
+    else:
+        write_scaled_colmap_model(inputs.model, scaled / "model", scale)
     write_scaled_mesh(inputs.mesh, scaled, scale)
 
 
@@ -232,7 +236,7 @@ def write_outputs(
     if math.isfinite(headline.value):
         write_sim3(out / "transform.sim3", headline.value)
         write_matrix_4x4(out / "transform_4x4.txt", headline.value)
-        _write_scaled(out, inputs, headline.value)
+        _write_scaled(out, inputs, loaded, headline.value)
     overlays = _write_overlays(out, runs, loaded, options) if options.overlays else {}
     report["timings_s"] = timer.as_dict()
     (out / "report.html").write_text(render_html(report, out, overlays), encoding="utf-8")
