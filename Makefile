@@ -8,12 +8,10 @@ STAMP := $(VENV)/.installed
 
 all: install
 
-$(STAMP): pyproject.toml scripts/install_system_deps.sh
-	bash scripts/install_system_deps.sh
-	test -x $(BIN)/python || $(PY) -m venv $(VENV)
-	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e ".[test]"
-	$(BIN)/python -c "import open3d, pycolmap, cv2" || { echo "Open3D/pycolmap/OpenCV failed to import: see the message above (Open3D needs Debian's libusb-1.0-0)." >&2; exit 1; }
+# scripts/install.sh is the one install script (docker/Dockerfile runs it too): system libraries,
+# Debian's colmap when it can (optional: tests that need it skip), the package into .venv.
+$(STAMP): pyproject.toml scripts/install.sh
+	bash scripts/install.sh --venv $(VENV) --python $(PY) --extras test --editable --colmap
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -190,5 +190,23 @@ def demo(**kw: Any) -> int:
     return EXIT_OK if result.success else EXIT_NO_SCALE
 
 
+@main.command()
+@click.option("--scale", "scale_value", required=True, type=float,
+              help="Metres per model unit (metric = scale x model coordinates).")
+@click.option("--model", type=_path, help="COLMAP sparse model folder or OpenMVG sfm_data.json.")
+@click.option("--mesh", type=_path, help="Mesh in the model's frame (PLY, OBJ, glTF, OFF, STL).")
+@click.option("--out", required=True, type=_path, help="Output folder (created).")
+@click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
+@common_options
+def apply(**kw: Any) -> int:
+    """Rescale a model and/or a mesh by a known scale; write them with the transform files."""
+    from sfm_laserscale.apply import ApplyInputs, ApplyOptions, apply_scale
+
+    result = apply_scale(ApplyInputs(model=kw["model"], mesh=kw["mesh"]), kw["out"],
+                         ApplyOptions(scale=kw["scale_value"]), overwrite=kw["overwrite"])
+    click.echo(result.summary)
+    return EXIT_OK
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

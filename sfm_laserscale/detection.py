@@ -2,17 +2,20 @@
 
 Pipeline (per laser colour needed by the rig):
 
-1. colour-difference response, e.g. ``R - max(G, B)`` for red (blue-green casts and white light
-   give <= 0). Where the laser channel is clipped (the white, saturated core of a bright spot)
-   the response is filled with the strongest colour difference found in a ring around the
-   clipped region, so a saturated spot with a coloured halo responds and a white specular
-   highlight (no coloured halo) does not;
+1. colour-difference response, e.g. ``max(R - max(G, B), 0)`` for red (blue-green casts and
+   white light give 0). Where the laser channel is clipped (the white, saturated core of a
+   bright spot) the response is filled with the strongest colour difference found in a ring
+   around the clipped region, so a saturated spot with a coloured halo responds and a white
+   specular highlight (no coloured halo) does not;
 2. multi-scale, scale-normalised difference-of-Gaussians on that response; local maxima above a
    noise-relative threshold are the *candidates*;
 3. each candidate is measured at full resolution (half-maximum radius, roundness, contrast and
    SNR against a background annulus, compactness = the annulus must be dark) and refined to
-   sub-pixel precision (Gaussian-windowed, background-subtracted intensity centroid by default,
-   or a 2D Gaussian fit);
+   sub-pixel precision on a texture-free signal: the laser channel minus its local linear
+   prediction from the (smoothed) other channels and a plane, fitted on a ring outside the
+   spot's support, so the scene texture (present in every channel) cancels. The centre is a
+   Gaussian-windowed centroid iterated to its fixed point (unbiased for any point-symmetric
+   spot, saturated or not) or, optionally and for spots cut by the border, a 2D Gaussian fit;
 4. geometry: each calibrated beam between ``min_range_m`` and ``max_range_m`` is projected with
    the camera model to an image polyline; a candidate is admissible for a laser only within
    ``band_px`` of it. One spot per laser, one laser per candidate, solved as a linear
@@ -47,6 +50,9 @@ Channels = tuple[F32, F32, F32]
 CHANNELS: dict[str, int] = {"red": 0, "green": 1, "blue": 2}
 UNCALIBRATED_REASON = "uncalibrated laser: give its spots with --spots"
 _INADMISSIBLE = 1e6
+_TOO_LARGE = "too large to be a spot"
+#: Gaussian sigma (px) of the smoothing of the texture regressor (the non-laser channels)
+OTHER_SMOOTH_PX = 1.5
 
 
 @dataclass(frozen=True)
@@ -65,11 +71,15 @@ class DetectionOptions:
       around the spot, relative to its peak contrast, must stay below this.
     - ``min_score``: an assigned spot with a lower score is reported in ``missing`` instead.
     - ``snr_half``: SNR at which the contrast term of the score is 0.5.
-    - ``refine``: "centroid" (Gaussian-windowed centroid of the background-subtracted summed
-      channels) or "gaussian" (2D Gaussian fit to the unclipped pixels).
+    - ``refine``: "centroid" (Gaussian-windowed centroid, the default: most accurate and
+      unbiased in our measurements) or "gaussian" (2D Gaussian fit to the unclipped pixels),
+      both on the texture-free spot signal (see :func:`spot_patch`). Spots cut by the image
+      border always use the fit.
     - ``sigma_floor_px``: floor of the reported localisation sigma (model error).
     - ``saturation_level``: channel value (0–1) above which a pixel counts as clipped.
     - ``max_candidates``: strongest local maxima examined per colour.
+    - ``input_gamma``: pixel values are decoded as ``(v / 255) ** input_gamma`` before anything
+      else (2.2 for gamma-encoded camera JPEGs, 1.0 for linear images).
     """
 
     min_range_m: float = 0.5
@@ -85,6 +95,22 @@ class DetectionOptions:
     sigma_floor_px: float = 0.05
     saturation_level: float = 250.0 / 255.0
     max_candidates: int = 100
+    input_gamma: float = 2.2
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.min_range_m < self.max_range_m:
+            raise InputError(f"detection range must satisfy 0 < min < max, got "
+                             f"{self.min_range_m:g}..{self.max_range_m:g} m")
+        if not self.input_gamma > 0:
+            raise InputError(f"input_gamma must be positive, got {self.input_gamma}")
+        if self.refine not in ("centroid", "gaussian"):
+            raise InputError(f"refine must be 'centroid' or 'gaussian', got {self.refine!r}")
+        if not self.spot_sigmas_px or min(self.spot_sigmas_px) <= 0:
+            raise InputError("spot_sigmas_px must be positive")
+        for name in ("band_px", "max_spot_radius_px"):
+            value = getattr(self, name)
+            if value is not None and value <= 0:
+                raise InputError(f"{name} must be positive, got {value}")
 
 
 @dataclass(frozen=True)
@@ -152,7 +178,11 @@ def default_max_spot_radius_px(width: int, height: int) -> float:
 
 
 def _normalised_bounds(camera: Camera, margin: float = 0.15) -> F64:
-    """(2, 2) [[xmin, ymin], [xmax, ymax]] of the image in normalised (z = 1) coordinates."""
+    """(2, 2) [[xmin, ymin], [xmax, ymax]] of the image in normalised (z = 1) coordinates.
+
+    Border pixels that the camera model cannot undistort (NaN, beyond the fold of a strong
+    radial distortion) are skipped; if too few remain, the pinhole bounds are used.
+    """
     w, h = float(camera.width), float(camera.height)
     t = np.linspace(0.0, 1.0, 9)
     border = np.concatenate([
@@ -160,6 +190,12 @@ def _normalised_bounds(camera: Camera, margin: float = 0.15) -> F64:
         np.column_stack([np.zeros_like(t), t * h]), np.column_stack([np.full_like(t, w), t * h]),
     ])
     xy = camera.unproject(border)[:, :2]
+    xy = xy[np.all(np.isfinite(xy), axis=1)]
+    if len(xy) < 8:
+        f = camera.focal_px
+        c = camera.unproject(np.array([[w / 2, h / 2]]))[0, :2]
+        xy = np.array([[c[0] - w / (2 * f), c[1] - h / (2 * f)],
+                       [c[0] + w / (2 * f), c[1] + h / (2 * f)]])
     lo, hi = xy.min(axis=0), xy.max(axis=0)
     pad = margin * (hi - lo)
     return np.stack([lo - pad, hi + pad])
@@ -186,7 +222,8 @@ def beam_polyline_px(
     inside = np.all((xy_n >= bounds[0]) & (xy_n <= bounds[1]), axis=1)
     if not np.any(inside):
         return np.zeros((0, 2))
-    return camera.project(pts[inside])
+    xy = camera.project(pts[inside])
+    return np.asarray(xy[np.all(np.isfinite(xy), axis=1)], dtype=np.float64)
 
 
 def distance_to_polyline(xy: F64, polyline: F64) -> F64:
@@ -215,32 +252,46 @@ def _laser_and_other(channels: Channels, color: str) -> tuple[F32, F32]:
     return channels[c], np.maximum(o1, o2)
 
 
-def colour_difference(channels: Channels, color: str, saturation_level: float) -> F32:
-    """(H, W) laser-colour response: channel minus the max of the others, clipped cores filled.
+def _fill_clipped(diff: F32, clipped: NDArray[np.bool_], max_area: float) -> None:
+    """In place: each clipped region of ``diff`` gets at least the max of a ring around it.
 
-    Pixels whose laser channel is clipped get at least the largest colour difference found in a
-    ring (as wide as the clipped region's equivalent radius, 2–12 px) around their clipped
-    region: a saturated laser core inherits its coloured halo, a white highlight gets ~0.
+    The ring is as wide as the region's equivalent radius (2–12 px). Regions larger than
+    ``max_area`` pixels (sky, glare) are left alone: they are no spot.
     """
-    laser, other = _laser_and_other(channels, color)
-    diff = laser - other
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(clipped.astype(np.uint8), 8)
+    h, w = diff.shape
+    for i in range(1, n):
+        x, y, bw, bh, area = (int(v) for v in stats[i])
+        if area > max_area:
+            continue
+        width = int(math.ceil(min(max(math.sqrt(area / math.pi), 2.0), 12.0)))
+        x0, y0 = max(0, x - width), max(0, y - width)
+        x1, y1 = min(w, x + bw + width), min(h, y + bh + width)
+        region = labels[y0:y1, x0:x1] == i
+        src = np.where(region, 0, 255).astype(np.uint8)
+        dist = cv2.distanceTransform(src, cv2.DIST_L2, 5)
+        ring = (dist > 0) & (dist <= width) & ~clipped[y0:y1, x0:x1]
+        if not ring.any():
+            continue
+        sub = diff[y0:y1, x0:x1]
+        sub[region] = np.maximum(sub[region], sub[ring].max())
+
+
+def colour_difference(
+    laser: F32, other: F32, saturation_level: float, max_area: float = np.inf
+) -> F32:
+    """(H, W) laser-colour response max(laser - other, 0), clipped cores filled.
+
+    ``other`` is the per-pixel max of the two non-laser channels, so blue-green casts and white
+    light give 0. Pixels whose laser channel is clipped get at least the largest colour
+    difference found in a ring around their clipped region (see :func:`_fill_clipped`): a
+    saturated laser core inherits its coloured halo, a white highlight gets ~0.
+    """
+    diff = np.maximum(laser - other, np.float32(0.0))
     clipped = laser >= saturation_level
-    if not np.any(clipped):
-        return np.asarray(diff, dtype=np.float32)
-    # distance of every unclipped pixel to the nearest clipped one, with that region's label
-    src = np.where(clipped, 0, 255).astype(np.uint8)
-    dist, lab = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5,
-                                                labelType=cv2.DIST_LABEL_CCOMP)
-    n = int(lab.max())
-    area = np.bincount(lab[clipped].ravel(), minlength=n + 1).astype(np.float64)
-    width = np.clip(np.sqrt(area / np.pi), 2.0, 12.0)
-    ring = (~clipped) & (dist <= width[lab])
-    fill = np.full(n + 1, -np.inf)
-    np.maximum.at(fill, lab[ring], diff[ring].astype(np.float64))
-    fill[~np.isfinite(fill)] = 0.0
-    out = diff.copy()
-    out[clipped] = np.maximum(diff[clipped], fill[lab[clipped]].astype(np.float32))
-    return np.asarray(out, dtype=np.float32)
+    if np.any(clipped):
+        _fill_clipped(diff, clipped, max_area)
+    return np.asarray(diff, dtype=np.float32)
 
 
 def _dog_at_scale(resp: F32, sigma: float) -> F32:
@@ -308,9 +359,10 @@ def _grid(win: tuple[slice, slice]) -> tuple[F64, F64]:
 
 
 def _half_max_region(
-    patch: F32, r0: int, c0: int, level: float
+    patch: F32, r0: int, c0: int, level: float, inner_edges: tuple[bool, bool, bool, bool]
 ) -> tuple[NDArray[np.bool_], bool]:
-    """Connected region of ``patch >= level`` holding (r0, c0), and whether it touches the edge."""
+    """Connected region of ``patch >= level`` holding (r0, c0), and whether it reaches a window
+    edge that is not the image border (``inner_edges``: top, bottom, left, right)."""
     labels, _ = ndimage.label(patch >= level)
     lab = labels[r0, c0]
     if lab == 0:
@@ -318,9 +370,9 @@ def _half_max_region(
         region[r0, c0] = True
         return region, False
     region = labels == lab
-    touches = bool(region[0].any() or region[-1].any() or region[:, 0].any()
-                   or region[:, -1].any())
-    return region, touches
+    edges = (region[0].any(), region[-1].any(), region[:, 0].any(), region[:, -1].any())
+    touches = any(e and inner for e, inner in zip(edges, inner_edges, strict=True))
+    return region, bool(touches)
 
 
 def _roundness(region: NDArray[np.bool_]) -> float:
@@ -378,12 +430,14 @@ def _shape_and_contrast(
     contrast = peak - bg
     if contrast <= 0:
         return _Blob(0.0, 0.0, contrast, 0.0, 0.0, "no contrast against its surroundings")
-    region, touches = _half_max_region(patch, r0, c0, bg + 0.5 * contrast)
+    inner_edges = (win[0].start > 0, win[0].stop < resp.shape[0],
+                   win[1].start > 0, win[1].stop < resp.shape[1])
+    region, touches = _half_max_region(patch, r0, c0, bg + 0.5 * contrast, inner_edges)
     radius = math.sqrt(region.sum() / math.pi)
     roundness = _roundness(region)
     if touches or radius > max_radius:
         return _Blob(radius, roundness, contrast, 0.0, 0.0,
-                     f"too large to be a spot (half-max radius > {max_radius:.1f} px)")
+                     f"{_TOO_LARGE} (half-max radius > {max_radius:.1f} px)")
     ring = patch[(rr >= 2.0 * radius + 2.0) & (rr <= 2.0 * radius + 5.0)]
     noise = max(_robust_std(ring - bg), _robust_std(outer), 0.5 / 255.0)
     snr = contrast / noise
@@ -416,6 +470,7 @@ class SpotPatch:
     usable: NDArray[np.bool_]
     noise: float
     support_px: float
+    cut: bool  # the support disc is cut by the image border
 
 
 def _texture_model(
@@ -441,6 +496,22 @@ def _texture_model(
     return np.asarray(coef[0] + coef[1] * (gx - x_c) + coef[2] * (gy - y_c) + coef[3] * other)
 
 
+def _smoothed_other(planes: _Planes, win: tuple[slice, slice]) -> F64:
+    """``planes.other`` in ``win`` smoothed by OTHER_SMOOTH_PX (computed on a padded window).
+
+    The texture regressor is smoothed: its own noise would otherwise attenuate the fitted
+    coefficient (errors in variables) and add to the spot signal.
+    """
+    pad = int(math.ceil(3.0 * OTHER_SMOOTH_PX)) + 1
+    h, w = planes.other.shape
+    r0, r1 = max(0, win[0].start - pad), min(h, win[0].stop + pad)
+    c0, c1 = max(0, win[1].start - pad), min(w, win[1].stop + pad)
+    big = cv2.GaussianBlur(planes.other[r0:r1, c0:c1], (0, 0), OTHER_SMOOTH_PX,
+                           borderType=cv2.BORDER_REFLECT)
+    return np.asarray(big[win[0].start - r0 : win[0].stop - r0,
+                          win[1].start - c0 : win[1].stop - c0], dtype=np.float64)
+
+
 def spot_patch(planes: _Planes, x0: float, y0: float, support_px: float) -> SpotPatch | None:
     """The texture-free signal around (x0, y0) (COLMAP px); None when too close to nothing."""
     radius = int(math.ceil(support_px)) + 4
@@ -452,12 +523,30 @@ def spot_patch(planes: _Planes, x0: float, y0: float, support_px: float) -> Spot
     if ring.sum() < 8:
         return None
     laser = planes.laser[win].astype(np.float64)
-    sig = laser - _texture_model(laser, planes.other[win].astype(np.float64), gx, gy, ring)
+    sig = laser - _texture_model(laser, _smoothed_other(planes, win), gx, gy, ring)
     inner_ok = (rr < support_px) & ~clipped_l
     if clipped_l.any():
         sig[clipped_l] = float(sig[inner_ok].max()) if inner_ok.any() else float(sig.max())
+    h, w = planes.laser.shape
+    cut = bool(x0 - support_px < 0 or y0 - support_px < 0 or x0 + support_px > w
+               or y0 + support_px > h)
     return SpotPatch(gx=gx, gy=gy, signal=sig, usable=~planes.clipped_any[win],
-                     noise=_robust_std(sig[ring]), support_px=support_px)
+                     noise=_robust_std(sig[ring]), support_px=support_px, cut=cut)
+
+
+def _centroid_step(
+    patch: SpotPatch, pos: F64, x: float, y: float, sigma_w: float
+) -> tuple[float, float, float, float]:
+    """One windowed-centroid update from (x, y): (new x, new y, Σw, Σ g²·r²)."""
+    rr2 = (patch.gx - x) ** 2 + (patch.gy - y) ** 2
+    g = np.exp(-0.5 * rr2 / (sigma_w * sigma_w)) * (rr2 < patch.support_px**2)
+    w = pos * g
+    total = float(w.sum())
+    if total <= 0:
+        return x, y, 0.0, 0.0
+    nx, ny = float((w * patch.gx).sum() / total), float((w * patch.gy).sum() / total)
+    spread = float((g * g * ((patch.gx - nx) ** 2 + (patch.gy - ny) ** 2)).sum())
+    return nx, ny, total, spread
 
 
 def refine_centroid(
@@ -467,26 +556,26 @@ def refine_centroid(
 
     The window (sigma ``sigma_w``, cut at the support radius) follows the estimate until it
     stops moving; for any point-symmetric spot the true centre is the fixed point, so the
-    estimate is unbiased. The sigma is the ring noise propagated through the centroid.
+    estimate is unbiased. The sigma is the ring noise propagated through one centroid step,
+    times the gain 1 / (1 - k) of the fixed-point iteration (k: how far one step follows a
+    displaced window, measured by displacing it).
     """
-    x, y = x0, y0
     pos = np.clip(patch.signal, 0.0, None)
-    noise_var = 0.0
+    x, y = x0, y0
+    total = spread = 0.0
     for _ in range(iterations):
-        rr2 = (patch.gx - x) ** 2 + (patch.gy - y) ** 2
-        g = np.exp(-0.5 * rr2 / (sigma_w * sigma_w)) * (rr2 < patch.support_px**2)
-        w = pos * g
-        total = float(w.sum())
-        if total <= 0:
-            break
-        nx, ny = float((w * patch.gx).sum() / total), float((w * patch.gy).sum() / total)
-        spread = float((g * g * ((patch.gx - nx) ** 2 + (patch.gy - ny) ** 2)).sum())
-        noise_var = patch.noise**2 * spread / (2.0 * total * total)
+        nx, ny, total, spread = _centroid_step(patch, pos, x, y, sigma_w)
         moved = math.hypot(nx - x, ny - y)
         x, y = nx, ny
-        if moved < 1e-5:
+        if total <= 0 or moved < 1e-5:
             break
-    return x, y, math.sqrt(noise_var)
+    if total <= 0:
+        return x, y, math.nan
+    delta = 0.25
+    kx = (_centroid_step(patch, pos, x + delta, y, sigma_w)[0] - x) / delta
+    ky = (_centroid_step(patch, pos, x, y + delta, sigma_w)[1] - y) / delta
+    gain = 1.0 / max(1.0 - 0.5 * (kx + ky), 0.2)
+    return x, y, gain * patch.noise * math.sqrt(spread / 2.0) / total
 
 
 def refine_gaussian(
@@ -535,12 +624,15 @@ def _check_image(image_rgb: NDArray[np.uint8], camera: Camera) -> None:
         raise InputError(f"laser image must be 8-bit (uint8), got {image_rgb.dtype}")
 
 
-def _channels(image_rgb: NDArray[np.uint8], roi: tuple[int, int, int, int]) -> Channels:
-    """The (x0, y0, x1, y1) crop of an RGB uint8 image as three float32 planes in [0, 1]."""
+def _channels(
+    image_rgb: NDArray[np.uint8], roi: tuple[int, int, int, int], gamma: float = 1.0
+) -> Channels:
+    """The (x0, y0, x1, y1) crop of an RGB uint8 image as three float32 planes in [0, 1],
+    decoded as ``(v / 255) ** gamma`` (1 = the image is linear)."""
     x0, y0, x1, y1 = roi
     crop = np.ascontiguousarray(image_rgb[y0:y1, x0:x1])
-    r, g, b = (np.multiply(ch, np.float32(1.0 / 255.0), dtype=np.float32)
-               for ch in cv2.split(crop))
+    lut = ((np.arange(256, dtype=np.float64) / 255.0) ** gamma).astype(np.float32)
+    r, g, b = (lut[ch] for ch in cv2.split(crop))
     return r, g, b
 
 
@@ -555,13 +647,17 @@ class _Planes:
     clipped_any: NDArray[np.bool_]  # (H, W) any channel clipped
 
 
-def _planes(channels: Channels, color: str, options: DetectionOptions) -> _Planes:
+def _planes(
+    channels: Channels, color: str, options: DetectionOptions, max_radius: float
+) -> _Planes:
     """Colour response, channels and clipped masks for one laser colour."""
     laser, other = _laser_and_other(channels, color)
+    resp = colour_difference(laser, other, options.saturation_level,
+                             4.0 * math.pi * max_radius**2)
     brightest = np.maximum(laser, other)
     return _Planes(
-        resp=colour_difference(channels, color, options.saturation_level), laser=laser,
-        other=other, clipped_laser=np.asarray(laser >= options.saturation_level),
+        resp=resp, laser=laser, other=other,
+        clipped_laser=np.asarray(laser >= options.saturation_level),
         clipped_any=np.asarray(brightest >= options.saturation_level),
     )
 
@@ -572,7 +668,9 @@ def _refine(planes: _Planes, m: _Measure, options: DetectionOptions) -> tuple[fl
     patch = spot_patch(planes, m.x, m.y, max(m.support_px, 3.0 * sigma_w))
     if patch is None:
         return math.nan, math.nan, math.nan
-    if options.refine == "gaussian":
+    if options.refine == "gaussian" or patch.cut:
+        # a spot cut by the image border: a centroid would be pulled inwards, a symmetric
+        # model fitted to the visible pixels is not
         return refine_gaussian(patch, m.x, m.y, sigma_w)
     return refine_centroid(patch, m.x, m.y, sigma_w)
 
@@ -595,8 +693,8 @@ def _measure_peak(
         m.rejected = why
         return m
     x, y, sig = _refine(planes, m, options)
-    if not math.hypot(x - m.x, y - m.y) <= max(2.0, 1.5 * radius):  # also NaN
-        m.rejected = "sub-pixel refinement diverged"
+    if not (math.hypot(x - m.x, y - m.y) <= max(2.0, 1.5 * radius) and math.isfinite(sig)):
+        m.rejected = "sub-pixel refinement failed"
         return m
     m.x, m.y = x, y
     m.sigma_px = math.hypot(sig, options.sigma_floor_px)
@@ -604,40 +702,48 @@ def _measure_peak(
     return m
 
 
+def _covering(out: list[_Measure], x: float, y: float) -> str | None:
+    """Why a maximum at (x, y) repeats an earlier one: inside a too-large blob or a spot."""
+    for o in out:
+        d = math.hypot(o.x - x, o.y - y)
+        if o.rejected is None and d < max(2.0, o.radius_px):
+            return f"duplicate of the stronger maximum at ({o.x:.1f}, {o.y:.1f})"
+        if o.rejected is not None and o.rejected.startswith(_TOO_LARGE) and d < o.radius_px:
+            return f"part of the too-large blob at ({o.x:.1f}, {o.y:.1f})"
+    return None
+
+
 def _candidates_for_colour(
     channels: Channels, color: str, options: DetectionOptions, region: _SearchRegion
 ) -> list[_Measure]:
     """Local maxima of one colour's blob response, measured and refined (image COLMAP px).
 
-    Maxima outside the beam bands (when every laser is calibrated) are listed, not measured.
+    Maxima outside the beam bands (when every laser is calibrated) or inside an earlier,
+    too-large blob are listed, not measured.
     """
-    planes = _planes(channels, color, options)
+    planes = _planes(channels, color, options, region.max_radius)
     dog = blob_response(planes.resp, options.spot_sigmas_px)
     threshold = max(4.0 * _robust_std(dog[::4, ::4]), 4.0 / 255.0)
     out: list[_Measure] = []
-    far: list[_Measure] = []
-    for row, col in _local_maxima(dog, threshold):
-        row, col = int(row), int(col)
+    for row, col in _local_maxima(dog, threshold)[: 4 * options.max_candidates]:
+        m = _Measure(x=col + 0.5, y=row + 0.5, color=color, response=float(dog[row, col]))
         if region.near is not None and not region.near[row, col]:
-            if len(far) < options.max_candidates:
-                far.append(_Measure(x=col + 0.5, y=row + 0.5, color=color,
-                                    response=float(dog[row, col]),
-                                    rejected="off every beam band (not measured)"))
-            continue
-        if len(out) >= options.max_candidates:
-            continue
-        m = _measure_peak(planes, (row, col), float(dog[row, col]), color, options,
-                          region.max_radius)
-        dup = next((o for o in out if o.rejected is None and m.rejected is None
-                    and math.hypot(o.x - m.x, o.y - m.y) < max(2.0, o.radius_px)), None)
-        if dup is not None:
-            m.rejected = f"duplicate of the stronger maximum at ({dup.x:.1f}, {dup.y:.1f})"
+            m.rejected = "off every beam band (not measured)"
+        elif sum(o.rejected is None for o in out) >= options.max_candidates:
+            m.rejected = f"beyond the {options.max_candidates} strongest maxima (not measured)"
+        else:
+            m.rejected = _covering(out, m.x, m.y)
+        if m.rejected is None:
+            m = _measure_peak(planes, (int(row), int(col)), m.response, color, options,
+                              region.max_radius)
+            if m.rejected is None:
+                m.rejected = _covering(out, m.x, m.y)
         out.append(m)
     x0, y0 = region.roi[:2]
-    for m in out + far:  # crop -> image coordinates
+    for m in out:  # crop -> image coordinates
         m.x += x0
         m.y += y0
-    return out + far
+    return out
 
 
 def _colours_needed(rig: Rig) -> list[str]:
@@ -656,7 +762,7 @@ def _beam_term(dist_px: F64, band_px: float) -> F64:
     return np.asarray(np.exp(-0.5 * (dist_px / band_px) ** 2), dtype=np.float64)
 
 
-def _any_colour(laser: Laser, valid: list[_Measure], dist: F64, band: float) -> str:
+def _any_colour(valid: list[_Measure], dist: F64, band: float) -> str:
     """For a colour-'any' laser: the colour of the strongest admissible candidate."""
     best = max(
         (m for m, d in zip(valid, dist, strict=True) if d <= band),
@@ -684,7 +790,7 @@ def _laser_costs(
                                 "is outside the image")
             continue
         dist[i] = distance_to_polyline(xy, line) if len(valid) else dist[i]
-        color = las.color if las.color != "any" else _any_colour(las, valid, dist[i], band)
+        color = las.color if las.color != "any" else _any_colour(valid, dist[i], band)
         ok = (dist[i] <= band) & np.array([m.color == color for m in valid], dtype=bool)
         score = base * _beam_term(dist[i], band)
         cost[i, ok] = -np.log(np.maximum(score[ok], 1e-12))
@@ -770,7 +876,7 @@ def _explain_unused(rig: Rig, valid: list[_Measure], dist: F64, band: float) -> 
         if m.reason:
             continue
         if not finite.any():
-            m.reason = "no laser of its colour to take it"
+            m.reason = "no calibrated laser of its colour to take it"
             continue
         li = int(np.argmin(np.where(finite, col, np.inf)))
         if col[li] > band:
@@ -833,7 +939,7 @@ def detect_spots(
     measures: list[_Measure] = []
     x0, y0, x1, y1 = region.roi
     if x1 > x0 and y1 > y0:
-        channels = _channels(image_rgb, region.roi)
+        channels = _channels(image_rgb, region.roi, options.input_gamma)
         for color in _colours_needed(rig):
             measures += _candidates_for_colour(channels, color, options, region)
     valid = [m for m in measures if m.rejected is None]

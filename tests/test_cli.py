@@ -11,6 +11,7 @@ import pytest
 from click.testing import CliRunner, Result
 
 from sfm_laserscale.cli import main
+from sfm_laserscale.io.transforms import read_matrix_4x4
 
 OUTPUTS = ["report.json", "report.html", "estimates.csv", "spots.csv", "transform.sim3",
            "transform_4x4.txt", "scaled/model/images.bin", "scaled/model/points3D.bin",
@@ -67,8 +68,7 @@ def test_transform_files_hold_the_scale(good_run: tuple[Result, Path]) -> None:
     s = json.loads((out / "report.json").read_text())["scale"]["value"]
     sim3 = [float(x) for x in (out / "transform.sim3").read_text().split()]
     assert sim3 == pytest.approx([s, 1, 0, 0, 0, 0, 0, 0])
-    rows = (out / "transform_4x4.txt").read_text().splitlines()
-    m = [[float(x) for x in row.split()] for row in rows]
+    m = read_matrix_4x4(out / "transform_4x4.txt")
     assert m[0][0] == pytest.approx(s) and m[3][3] == 1.0 and m[0][3] == 0.0
 
 

@@ -1,0 +1,113 @@
+#!/usr/bin/env bash
+# The ONE install script of sfm-laserscale: `make install` (Makefile) and docker/Dockerfile
+# both run it, so a clean clone, CI and the Docker image are set up the same way.
+#
+#   1. Debian/Ubuntu system libraries: libusb-1.0-0 (Open3D's wheel links libusb-1.0.so.0)
+#      and libgomp1; with --colmap also Debian's `colmap` (3.8 on bookworm, CPU only; about
+#      15 s and 42 packages here). colmap is optional: if it cannot be installed the script
+#      only warns (the tests that need it skip, the COLMAP plugin falls back to pycolmap).
+#   2. the Python package with the given extras: into --venv DIR (created when missing) or
+#      into the Python given by --python (default python3), editable with --editable.
+#   3. a check that Open3D, pycolmap and OpenCV import.
+#
+# usage: scripts/install.sh [--venv DIR] [--python PY] [--extras LIST] [--editable] [--colmap]
+set -euo pipefail
+
+ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+VENV="" PY=python3 EXTRAS="" EDITABLE=0 COLMAP=0
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --venv) VENV=$2; shift 2 ;;
+    --python) PY=$2; shift 2 ;;
+    --extras) EXTRAS=$2; shift 2 ;;
+    --editable) EDITABLE=1; shift ;;
+    --colmap) COLMAP=1; shift ;;
+    -h|--help) sed -n '2,14p' "$0"; exit 0 ;;
+    *) echo "install.sh: unknown option $1 (see --help)" >&2; exit 2 ;;
+  esac
+done
+
+say() { echo "sfm-laserscale install: $*" >&2; }
+
+missing_packages() {  # the Debian packages among "$@" that are not installed
+  local p
+  for p in "$@"; do
+    dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || echo "$p"
+  done
+}
+
+SUDO=""
+APT_READY=0
+apt_possible() {  # 0 when apt-get can install here (as root or through sudo)
+  command -v apt-get >/dev/null 2>&1 && command -v dpkg-query >/dev/null 2>&1 || return 1
+  if [ "$(id -u)" -ne 0 ]; then
+    command -v sudo >/dev/null 2>&1 || return 1
+    SUDO="sudo"
+  fi
+}
+
+apt_install() {  # apt-get install "$@" (apt-get update once first); output only on failure
+  local log
+  log=$(mktemp)
+  if [ "$APT_READY" -eq 0 ]; then
+    $SUDO apt-get update -qq >"$log" 2>&1 || { cat "$log" >&2; rm -f "$log"; return 1; }
+    APT_READY=1
+  fi
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "$@" \
+    >"$log" 2>&1 || { tail -n 20 "$log" >&2; rm -f "$log"; return 1; }
+  rm -f "$log"
+}
+
+install_system() {
+  local required optional
+  if ! command -v dpkg-query >/dev/null 2>&1; then
+    say "not a Debian/Ubuntu system: make sure libusb-1.0 and libgomp (OpenMP) are installed" \
+        "with your package manager (Open3D does not import without libusb-1.0.so.0)"
+    return 0
+  fi
+  mapfile -t required < <(missing_packages libusb-1.0-0 libgomp1)
+  if [ ${#required[@]} -gt 0 ]; then
+    if ! apt_possible; then
+      say "missing system libraries (${required[*]}) and no root/sudo to install them:" \
+          "run  apt-get install ${required[*]}  as root, then this again"
+      exit 1
+    fi
+    say "installing system libraries: ${required[*]}"
+    apt_install "${required[@]}" || {
+      say "could not install ${required[*]} with apt-get; Open3D will not import without" \
+          "libusb-1.0.so.0"; exit 1; }
+  fi
+  [ "$COLMAP" -eq 1 ] || return 0
+  mapfile -t optional < <(missing_packages colmap)
+  [ ${#optional[@]} -gt 0 ] || return 0
+  if apt_possible && { say "installing Debian's colmap (optional)"; apt_install colmap; }; then
+    return 0
+  fi
+  say "WARNING: could not install Debian's colmap; the tests that need the colmap CLI will" \
+      "skip and the COLMAP plugin will use pycolmap"
+}
+
+install_python() {
+  local py spec
+  if [ -n "$VENV" ]; then
+    [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
+    py="$VENV/bin/python"
+    "$py" -m pip install -q --upgrade pip
+  else
+    py="$PY"
+  fi
+  spec="$ROOT"
+  [ -z "$EXTRAS" ] || spec="$ROOT[$EXTRAS]"
+  if [ "$EDITABLE" -eq 1 ]; then
+    "$py" -m pip install -q -e "$spec"
+  else
+    "$py" -m pip install -q "$spec"
+  fi
+  "$py" -c "import open3d, pycolmap, cv2" || {
+    say "Open3D/pycolmap/OpenCV failed to import: see the message above (Open3D needs" \
+        "Debian's libusb-1.0-0)"; exit 1; }
+}
+
+install_system
+install_python
+say "done"

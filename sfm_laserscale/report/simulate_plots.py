@@ -1,0 +1,215 @@
+"""Figures of ``simulate`` (matplotlib, Agg): PNG bytes, no files.
+
+Like the paper's figures: the scale error over the pitch/roll grid per method for the smooth
+and the rough area (heatmaps), error distributions at each distance (box plots), PCM error
+against the depth difference of the two hits (PCM vs PCM-joint), plus the normalised errors
+(estimate − truth) / reported σ against N(0, 1), which shows whether the σ is calibrated.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+import matplotlib
+import numpy as np
+from numpy.typing import NDArray
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+if TYPE_CHECKING:
+    from sfm_laserscale.synthetic.simulate import SimulationResult
+
+F64 = NDArray[np.float64]
+DPI = 90
+
+
+def _png(fig: Any) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def heatmaps_png(maps: Mapping[str, Mapping[str, F64]], angles_deg: F64,
+                 labels: Mapping[str, str], title: str) -> bytes:
+    """Rows = areas, columns = methods; colour = mean error % at each (pitch, roll)."""
+    areas = list(maps)
+    methods = [m for m in labels if any(m in maps[a] for a in areas)]
+    fig, axes = plt.subplots(len(areas), len(methods), squeeze=False,
+                             figsize=(2.6 * len(methods) + 0.8, 2.5 * len(areas) + 0.6))
+    ext = [angles_deg[0], angles_deg[-1], angles_deg[0], angles_deg[-1]]
+    for i, area in enumerate(areas):
+        for j, m in enumerate(methods):
+            ax = axes[i, j]
+            arr = maps[area].get(m)
+            if arr is None:
+                ax.axis("off")
+                continue
+            lim = float(np.nanmax(np.abs(arr))) if np.isfinite(arr).any() else 1.0
+            im = ax.imshow(arr.T, origin="lower", extent=ext, cmap="RdBu_r", vmin=-lim,
+                           vmax=lim, interpolation="nearest")
+            fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03).ax.tick_params(labelsize=7)
+            ax.set_title(f"{labels[m]}\n{area}", fontsize=8)
+            ax.tick_params(labelsize=7)
+            ax.set_xlabel("pitch (°)", fontsize=7)
+            ax.set_ylabel("roll (°)", fontsize=7)
+    fig.suptitle(title + " — mean error (% of the scale)", fontsize=9)
+    # fixed margins: tight_layout takes seconds on a dozen axes with colour bars
+    fig.subplots_adjust(left=0.06, right=0.97, bottom=0.1, top=0.86, wspace=0.55, hspace=0.6)
+    return _png(fig)
+
+
+def error_boxes_png(errors: Mapping[str, Mapping[str, Mapping[float, F64]]],
+                    labels: Mapping[str, str], title: str) -> bytes:
+    """Panels = areas; per method, one box per distance (error in % of the scale)."""
+    panels = list(errors)
+    fig, axes = plt.subplots(len(panels), 1, squeeze=False, figsize=(9, 2.9 * len(panels) + 0.4))
+    for ax, panel in zip(axes[:, 0], panels, strict=True):
+        methods = [m for m in labels if m in errors[panel]]
+        dists = sorted({d for m in methods for d in errors[panel][m]})
+        width = 0.8 / max(len(dists), 1)
+        for k, d in enumerate(dists):
+            data = [errors[panel][m].get(d, np.zeros(0)) for m in methods]
+            pos = np.arange(len(methods)) + (k - (len(dists) - 1) / 2) * width
+            keep = [i for i, x in enumerate(data) if len(x)]
+            if not keep:
+                continue
+            bp = ax.boxplot([data[i] for i in keep], positions=pos[keep], widths=width * 0.9,
+                            showfliers=False, patch_artist=True, whis=(2.5, 97.5))
+            for patch in bp["boxes"]:
+                patch.set_facecolor(plt.get_cmap("viridis")(k / max(len(dists) - 1, 1)))
+                patch.set_alpha(0.6)
+            ax.plot([], [], "s", color=plt.get_cmap("viridis")(k / max(len(dists) - 1, 1)),
+                    label=f"{d:g} m")
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_xticks(range(len(methods)), [labels[m] for m in methods], fontsize=7,
+                      rotation=15)
+        ax.set_ylabel("error (%)", fontsize=8)
+        ax.set_title(f"{title} — {panel} (boxes 25–75 %, whiskers 2.5–97.5 %)", fontsize=9)
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def depth_scatter_png(series: Mapping[str, tuple[F64, F64]], title: str) -> bytes:
+    """Error (%) against |depth difference| of the two hits along the beams (m)."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for (label, (depth, err)), mk in zip(series.items(), ("o", "x", "+", "s"), strict=False):
+        ax.plot(depth, err, mk, ms=2.5, alpha=0.4, label=f"{label} (n {len(err)})")
+    ax.axhline(0, color="k", lw=0.8)
+    ax.set_xlabel("|depth difference of the two hits along the beams| (m)")
+    ax.set_ylabel("scale error (%)")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=8, markerscale=3)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def calibration_png(z: Mapping[str, F64], labels: Mapping[str, str], title: str) -> bytes:
+    """Histograms of z = (estimate − truth) / reported σ with the N(0, 1) density."""
+    methods = [m for m in labels if m in z and len(z[m])]
+    fig, axes = plt.subplots(1, max(len(methods), 1), squeeze=False,
+                             figsize=(2.8 * max(len(methods), 1) + 0.5, 2.9))
+    x = np.linspace(-5, 5, 201)
+    for ax, m in zip(axes[0], methods, strict=False):
+        v = z[m][np.isfinite(z[m])]
+        ax.hist(np.clip(v, -5, 5), bins=50, range=(-5, 5), density=True, alpha=0.6)
+        ax.plot(x, np.exp(-x**2 / 2) / np.sqrt(2 * np.pi), "k", lw=1)
+        cover = float(np.mean(np.abs(v) <= 1.959964))
+        ax.set_title(f"{labels[m]}\nRMS z {np.sqrt(np.mean(v**2)):.2f}, |z|≤1.96: {cover:.3f}",
+                     fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.set_xlabel("z", fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    return _png(fig)
+
+
+# --------------------------------------------------------------------------- from a result
+
+HEATMAP_METHODS = ("fcm_fused", "fcm", "pcm", "pcm_joint_view", "direct3d", "davis_tusting")
+BOX_METHODS = ("fcm", "fcm_fused", "pcm", "pcm_joint", "pcm_joint_view", "direct3d",
+               "davis_tusting")
+Z_METHODS = ("fcm", "fcm_fused", "pcm", "pcm_joint")
+
+
+def _labels(methods: Sequence[str], group_size: int) -> dict[str, str]:
+    from sfm_laserscale.synthetic.simulate import method_label
+
+    return {m: method_label(m, group_size) for m in methods}
+
+
+def _rows(a: dict[str, NDArray[Any]], vocab: list[str], keys: Sequence[Any], method: str,
+          **match: Any) -> NDArray[np.bool_]:
+    """Rows of one method whose setting key matches every given field."""
+    if method not in vocab:
+        return np.zeros(len(a["value"]), dtype=bool)
+    kids = [i for i, k in enumerate(keys) if all(getattr(k, f) == v for f, v in match.items())]
+    return np.asarray((a["method"] == vocab.index(method)) & np.isin(a["key"], kids))
+
+
+def _error_figures(result: SimulationResult, a: dict[str, NDArray[Any]]) -> dict[str, bytes]:
+    t, opts = result.collected.table, result.options
+    labels = _labels(BOX_METHODS, opts.group_size)
+    out = {}
+    for config in sorted({k.config for k in t.keys}):
+        errors: dict[str, dict[str, dict[float, F64]]] = {}
+        for area in sorted({k.area for k in t.keys}):
+            per = {m: {d: 100 * (a["value"][rows] / opts.true_scale - 1)
+                       for d in opts.distances_m
+                       if (rows := _rows(a, t.vocab, t.keys, m, config=config, area=area,
+                                         distance_m=d)).any()}
+                   for m in BOX_METHODS}
+            errors[area] = {m: v for m, v in per.items() if v}
+        out[f"errors_{config}.png"] = error_boxes_png(errors, labels, f"configuration {config}")
+    return out
+
+
+def _scatter_figures(result: SimulationResult, a: dict[str, NDArray[Any]]) -> dict[str, bytes]:
+    t, opts = result.collected.table, result.options
+    out = {}
+    for config in sorted({k.config for k in t.keys}):
+        series = {}
+        for m, label in (("pcm", "PCM (midpoint)"),
+                         ("pcm_joint_view", f"PCM-joint direction ({opts.group_size} views)")):
+            rows = _rows(a, t.vocab, t.keys, m, config=config) & np.isfinite(a["depth"])
+            if rows.any():
+                series[label] = (a["depth"][rows], 100 * (a["value"][rows] / opts.true_scale - 1))
+        if series:
+            out[f"pcm_depth_{config}.png"] = depth_scatter_png(
+                series, f"configuration {config}: PCM error against the hits' depth difference")
+    return out
+
+
+def _heatmap_figures(result: SimulationResult) -> dict[str, bytes]:
+    from sfm_laserscale.synthetic.simulate import grid_angles, grid_maps
+
+    opts = result.options
+    labels = _labels(HEATMAP_METHODS, opts.group_size)
+    return {f"heatmap_{c}_{d:g}m.png": heatmaps_png(maps, grid_angles(opts), labels,
+                                                    f"configuration {c}, {d:g} m")
+            for (c, d), maps in grid_maps(result.collected, opts).items()}
+
+
+def simulation_figures(result: SimulationResult) -> dict[str, bytes]:
+    """File name -> PNG of every figure of a simulation."""
+    t, opts = result.collected.table, result.options
+    if len(t) == 0:
+        return {}
+    a = t.arrays()
+    out = _heatmap_figures(result) if opts.mode == "grid" else {}
+    out.update(_error_figures(result, a))
+    if opts.mode != "noise-table":
+        out.update(_scatter_figures(result, a))
+    z = {}
+    for m in Z_METHODS:
+        rows = _rows(a, t.vocab, t.keys, m) & (a["sigma"] > 0)
+        z[m] = (a["value"][rows] - opts.true_scale) / a["sigma"][rows]
+    out["calibration.png"] = calibration_png(z, _labels(Z_METHODS, opts.group_size),
+                                             f"normalised errors, {opts.mode} (all settings)")
+    return out
