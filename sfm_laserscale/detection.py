@@ -73,7 +73,7 @@ class DetectionOptions:
     - ``snr_half``: SNR at which the contrast term of the score is 0.5.
     - ``refine``: "centroid" (Gaussian-windowed centroid, the default: most accurate and
       unbiased in our measurements) or "gaussian" (2D Gaussian fit to the unclipped pixels),
-      both on the texture-free spot signal (see :func:`spot_patch`). Spots cut by the image
+      both on the texture-free spot signal (see :func:`_spot_patch`). Spots cut by the image
       border always use the fit.
     - ``sigma_floor_px``: floor of the reported localisation sigma (model error).
     - ``saturation_level``: channel value (0–1) above which a pixel counts as clipped.
@@ -512,7 +512,7 @@ def _smoothed_other(planes: _Planes, win: tuple[slice, slice]) -> F64:
                           win[1].start - c0 : win[1].stop - c0], dtype=np.float64)
 
 
-def spot_patch(planes: _Planes, x0: float, y0: float, support_px: float) -> SpotPatch | None:
+def _spot_patch(planes: _Planes, x0: float, y0: float, support_px: float) -> SpotPatch | None:
     """The texture-free signal around (x0, y0) (COLMAP px); None when too close to nothing."""
     radius = int(math.ceil(support_px)) + 4
     win = _window(planes.laser.shape, int(math.floor(y0)), int(math.floor(x0)), radius)
@@ -665,7 +665,7 @@ def _planes(
 def _refine(planes: _Planes, m: _Measure, options: DetectionOptions) -> tuple[float, float, float]:
     """Sub-pixel centre and localisation sigma of one candidate (COLMAP px); NaN if impossible."""
     sigma_w = max(1.0, m.radius_px)
-    patch = spot_patch(planes, m.x, m.y, max(m.support_px, 3.0 * sigma_w))
+    patch = _spot_patch(planes, m.x, m.y, max(m.support_px, 3.0 * sigma_w))
     if patch is None:
         return math.nan, math.nan, math.nan
     if options.refine == "gaussian" or patch.cut:

@@ -1,8 +1,16 @@
-"""Overlay images: detected spots, predicted beam lines, registration inliers, per-laser scale."""
+"""Overlay images: detected spots, predicted beam lines, registration inliers, per-laser scale.
+
+Everything is drawn AFTER resizing the photograph to the output size (longer side between
+``min_side`` and ``max_side``), so lines and text have the same legible size for a 640×480 and
+a 4K image. Spot labels are short (the laser's name) and placed where they overlap nothing
+already drawn; the numbers go into a legend strip below the photograph, one box per laser,
+so they never hide the image.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -10,14 +18,211 @@ from numpy.typing import NDArray
 
 from sfm_laserscale.detection import beam_polyline_px
 from sfm_laserscale.model import Camera, Spot
+from sfm_laserscale.report.style import INLIER_HEX, WARNING_HEX, hex_to_bgr, laser_color_bgr
 from sfm_laserscale.rig import Rig
 
-_COLORS_BGR = [(0, 255, 255), (255, 0, 255), (255, 255, 0), (0, 165, 255), (0, 255, 0)]
+_FONT = cv2.FONT_HERSHEY_DUPLEX
+_SHIFT = 4  # fixed-point bits for sub-pixel drawing
+_BLACK = (0, 0, 0)
+_WHITE = (255, 255, 255)
+_RED = hex_to_bgr(WARNING_HEX)
+_INLIER = hex_to_bgr(INLIER_HEX)
+Box = tuple[float, float, float, float]  # x0, y0, x1, y1 (output pixels)
 
 
-def _pt(xy: NDArray[np.float64], shift: int = 4) -> tuple[int, int]:
-    # COLMAP pixel convention -> OpenCV drawing coordinates: subtract 0.5, fixed-point shift.
-    return (int(round((xy[0] - 0.5) * (1 << shift))), int(round((xy[1] - 0.5) * (1 << shift))))
+@dataclass(frozen=True)
+class _Style:
+    """Sizes in output pixels, derived from the output's longer side."""
+
+    line: int
+    circle: float
+    font: float
+    text_thick: int
+    dot: float
+
+    @staticmethod
+    def for_size(long_side: int) -> _Style:
+        u = long_side / 1200.0
+        return _Style(
+            line=max(2, round(2 * u)),
+            circle=14.0 * u,
+            font=1.0 * u,
+            text_thick=max(1, round(2 * u)),
+            dot=2.2 * u,
+        )
+
+
+def _fp(xy: NDArray[np.float64] | Sequence[float], f: float) -> tuple[int, int]:
+    """COLMAP pixel (centre of top-left pixel is (0.5, 0.5)) of the INPUT image -> OpenCV
+    drawing coordinates of the resized output (subtract 0.5, scale), fixed point."""
+    x = (float(xy[0]) * f - 0.5) * (1 << _SHIFT)
+    y = (float(xy[1]) * f - 0.5) * (1 << _SHIFT)
+    return int(round(x)), int(round(y))
+
+
+def _resize(img: NDArray[np.uint8], min_side: int, max_side: int) -> tuple[NDArray[np.uint8], float]:
+    long_side = max(img.shape[:2])
+    target = min(max(long_side, min_side), max_side)
+    f = target / long_side
+    if abs(f - 1.0) < 1e-9:
+        return img.copy(), 1.0
+    interp = cv2.INTER_AREA if f < 1.0 else cv2.INTER_CUBIC
+    return cv2.resize(img, None, fx=f, fy=f, interpolation=interp), f
+
+
+def _text(img: NDArray[np.uint8], text: str, org: tuple[int, int], scale: float,
+          color: tuple[int, int, int], thick: int) -> None:
+    """Text with a dark outline, legible on any background."""
+    cv2.putText(img, text, org, _FONT, scale, _BLACK, thick + 3, cv2.LINE_AA)
+    cv2.putText(img, text, org, _FONT, scale, color, thick, cv2.LINE_AA)
+
+
+def _draw_inliers(img: NDArray[np.uint8], xy: NDArray[np.float64], f: float, st: _Style) -> None:
+    r = int(round(st.dot * (1 << _SHIFT)))
+    for p in np.asarray(xy, dtype=np.float64).reshape(-1, 2)[:3000]:
+        cv2.circle(img, _fp(p, f), r + (1 << _SHIFT), _BLACK, -1, cv2.LINE_AA, _SHIFT)
+        cv2.circle(img, _fp(p, f), r, _INLIER, -1, cv2.LINE_AA, _SHIFT)
+
+
+def _draw_beams(img: NDArray[np.uint8], camera: Camera, rig: Rig, f: float, st: _Style,
+                min_range_m: float, max_range_m: float) -> list[NDArray[np.float64]]:
+    """Predicted beam lines (calibrated lasers); returns their output-pixel polylines."""
+    lines = []
+    for i, las in enumerate(rig.lasers):
+        line = beam_polyline_px(camera, las, min_range_m, max_range_m)
+        if len(line) < 2:
+            continue
+        pts = np.array([_fp(p, f) for p in line], dtype=np.int32).reshape(-1, 1, 2)
+        cv2.polylines(img, [pts], False, _BLACK, st.line + 2, cv2.LINE_AA, _SHIFT)
+        cv2.polylines(img, [pts], False, laser_color_bgr(i), st.line, cv2.LINE_AA, _SHIFT)
+        lines.append(line * f)
+    return lines
+
+
+def _overlap(a: Box, b: Box) -> float:
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    return max(w, 0.0) * max(h, 0.0)
+
+
+def _outside(box: Box, width: int, height: int) -> float:
+    inside = _overlap(box, (0.0, 0.0, float(width), float(height)))
+    return (box[2] - box[0]) * (box[3] - box[1]) - inside
+
+
+def place_labels(
+    anchors: Sequence[tuple[float, float]], sizes: Sequence[tuple[float, float]],
+    radius: float, width: int, height: int, obstacles: Sequence[Box] = (),
+) -> list[Box]:
+    """Label boxes near their anchors (pixels) that overlap each other, the anchors' circles and
+    ``obstacles`` as little as possible, inside the image; greedy, candidates on rings."""
+    placed: list[Box] = []
+    circles = [(x - radius, y - radius, x + radius, y + radius) for x, y in anchors]
+    for (x, y), (w, h) in zip(anchors, sizes, strict=True):
+        best: tuple[float, Box] | None = None
+        for ring in (1.25, 2.0, 3.0, 4.5):
+            d = radius * ring
+            for ang in np.deg2rad([-30, 30, -150, 150, -90, 90, 0, 180]):
+                cx, cy = x + d * np.cos(ang), y + d * np.sin(ang)
+                # attach the box by its nearest side/corner to the ring point
+                bx = cx if np.cos(ang) > 0.3 else (cx - w if np.cos(ang) < -0.3 else cx - w / 2)
+                by = cy - h if np.sin(ang) < -0.3 else (cy if np.sin(ang) > 0.3 else cy - h / 2)
+                box = (bx, by, bx + w, by + h)
+                cost = sum(_overlap(box, o) for o in [*placed, *circles, *obstacles])
+                cost = cost + 4.0 * _outside(box, width, height) + 0.02 * ring * w * h
+                if best is None or cost < best[0]:
+                    best = (cost, box)
+            if best is not None and best[0] < 0.05 * ring * w * h:
+                break
+        assert best is not None  # the loops above always produce a candidate
+        placed.append(best[1])
+    return placed
+
+
+def _draw_spots(img: NDArray[np.uint8], rig: Rig, spots: Sequence[Spot], f: float,
+                st: _Style, rejected: Mapping[str, str]) -> None:
+    if not spots:
+        return
+    h, w = img.shape[:2]
+    r_circle = st.circle
+    anchors = [(s.x * f - 0.5, s.y * f - 0.5) for s in spots]
+    sizes = []
+    for s in spots:
+        (tw, th), base = cv2.getTextSize(s.laser, _FONT, st.font, st.text_thick + 3)
+        sizes.append((float(tw + 4), float(th + base + 4)))
+    boxes = place_labels(anchors, sizes, r_circle, w, h)
+    for s, (ax, ay), box in zip(spots, anchors, boxes, strict=True):
+        idx = rig.names.index(s.laser) if s.laser in rig.names else 0
+        color = _RED if s.laser in rejected else laser_color_bgr(idx)
+        c = _fp((s.x, s.y), f)
+        rr = int(round(r_circle * (1 << _SHIFT)))
+        cv2.circle(img, c, rr, _BLACK, st.line + 2, cv2.LINE_AA, _SHIFT)
+        cv2.circle(img, c, rr, color, st.line, cv2.LINE_AA, _SHIFT)
+        bx = min(max(ax, box[0]), box[2])
+        by = min(max(ay, box[1]), box[3])
+        dist = float(np.hypot(bx - ax, by - ay))
+        if dist > r_circle * 1.6:  # leader line from the circle to a far label
+            ux, uy = (bx - ax) / dist, (by - ay) / dist
+            p0 = _fp(((ax + ux * r_circle + 0.5) / f, (ay + uy * r_circle + 0.5) / f), f)
+            p1 = _fp(((bx + 0.5) / f, (by + 0.5) / f), f)
+            cv2.line(img, p0, p1, color, max(1, st.line - 1), cv2.LINE_AA, _SHIFT)
+        org = (int(round(box[0] + 2)), int(round(box[3] - 2 - cv2.getTextSize(
+            s.laser, _FONT, st.font, st.text_thick + 3)[1])))
+        _text(img, s.laser, org, st.font, color, st.text_thick)
+
+
+def _legend_entries(rig: Rig, spots: Sequence[Spot], scales: Mapping[str, float],
+                    rejected: Mapping[str, str], n_inliers: int | None
+                    ) -> list[tuple[str, tuple[int, int, int], str]]:
+    """(kind, colour, text) per legend box: one per laser, then inliers and beams."""
+    seen = {s.laser for s in spots}
+    out: list[tuple[str, tuple[int, int, int], str]] = []
+    for i, name in enumerate(rig.names):
+        if name in rejected:
+            out.append(("spot", _RED, f"{name} rejected"))
+        elif name in scales and np.isfinite(scales[name]):
+            out.append(("spot", laser_color_bgr(i), f"{name} s={scales[name]:.6g}"))
+        elif name in seen:
+            out.append(("spot", laser_color_bgr(i), f"{name} no FCM"))
+        else:
+            out.append(("spot", laser_color_bgr(i), f"{name} not found"))
+    if n_inliers is not None:
+        out.append(("dot", _INLIER, f"inliers ({n_inliers})"))
+    if any(las.calibrated for las in rig.lasers):
+        out.append(("line", _WHITE, "predicted beams"))
+    return out
+
+
+def _legend_strip(entries: Sequence[tuple[str, tuple[int, int, int], str]], width: int,
+                  st: _Style) -> NDArray[np.uint8]:
+    """A dark strip of legend boxes (flow layout, as many rows as needed)."""
+    scale = st.font * 0.85
+    (_, th), base = cv2.getTextSize("Ag", _FONT, scale, st.text_thick)
+    row_h = int(th + base + 2 * st.circle * 0.6 + 6)
+    pad = int(st.circle)
+    items, x, y = [], pad, 0
+    for kind, color, text in entries:
+        tw = cv2.getTextSize(text, _FONT, scale, st.text_thick)[0][0]
+        w = int(2.2 * st.circle + tw + pad)
+        if x + w > width and x > pad:
+            x, y = pad, y + row_h
+        items.append((x, y, kind, color, text))
+        x += w + pad
+    strip = np.full((y + row_h + pad // 2, width, 3), 28, dtype=np.uint8)
+    for x0, y0, kind, color, text in items:
+        cy = y0 + row_h // 2 + pad // 4
+        cx = int(x0 + st.circle)
+        if kind == "spot":
+            cv2.circle(strip, (cx, cy), int(st.circle * 0.7), color, st.line, cv2.LINE_AA)
+        elif kind == "dot":
+            cv2.circle(strip, (cx, cy), max(2, int(st.dot * 1.5)), color, -1, cv2.LINE_AA)
+        else:
+            cv2.line(strip, (int(x0), cy), (int(x0 + 2 * st.circle), cy), color, st.line,
+                     cv2.LINE_AA)
+        org = (int(x0 + 2.2 * st.circle), cy + th // 2)
+        cv2.putText(strip, text, org, _FONT, scale, color if kind == "spot" else _WHITE,
+                    st.text_thick, cv2.LINE_AA)
+    return strip
 
 
 def draw_overlay(
@@ -30,42 +235,22 @@ def draw_overlay(
     min_range_m: float,
     max_range_m: float,
     max_side: int = 1600,
+    *,
+    min_side: int = 1200,
+    rejected: Mapping[str, str] | None = None,
 ) -> NDArray[np.uint8]:
-    """(H', W', 3) BGR overlay, shrunk so its longer side is at most ``max_side`` pixels."""
-    img = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
-    thick = max(1, int(round(max(img.shape[:2]) / 800)))
+    """(H', W' + legend, 3) BGR overlay: the photo resized so its longer side lies in
+    [``min_side``, ``max_side``], annotated, with a legend strip below it.
+
+    ``scales``: FCM scale per laser for the legend; ``rejected``: laser -> reason (drawn red).
+    """
+    rejected = rejected or {}
+    img, f = _resize(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), min_side, max_side)
+    st = _Style.for_size(max(img.shape[:2]))
     if inliers_xy is not None:
-        for xy in np.asarray(inliers_xy)[:2000]:
-            cv2.circle(img, _pt(xy), 2 << 4, (0, 200, 0), -1, cv2.LINE_AA, 4)
-    for i, las in enumerate(rig.lasers):
-        color = _COLORS_BGR[i % len(_COLORS_BGR)]
-        line = beam_polyline_px(camera, las, min_range_m, max_range_m)
-        if len(line) >= 2:
-            pts = np.array([_pt(p) for p in line], dtype=np.int32).reshape(-1, 1, 2)
-            cv2.polylines(img, [pts], False, color, thick, cv2.LINE_AA, 4)
-    for spot in spots:
-        idx = rig.names.index(spot.laser) if spot.laser in rig.names else 0
-        color = _COLORS_BGR[idx % len(_COLORS_BGR)]
-        c = _pt(np.array([spot.x, spot.y]))
-        cv2.circle(img, c, (12 * thick) << 4, color, thick, cv2.LINE_AA, 4)
-        label = spot.laser
-        if spot.laser in scales and np.isfinite(scales[spot.laser]):
-            label += f" s={scales[spot.laser]:.5g}"
-        org = (int(spot.x) + 14 * thick, int(spot.y) - 6 * thick)
-        cv2.putText(
-            img,
-            label,
-            org,
-            cv2.FONT_HERSHEY_SIMPLEX,
-            0.5 * thick,
-            (0, 0, 0),
-            3 * thick,
-            cv2.LINE_AA,
-        )
-        cv2.putText(
-            img, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.5 * thick, color, thick, cv2.LINE_AA
-        )
-    f = min(1.0, max_side / max(img.shape[:2]))
-    if f < 1.0:
-        img = cv2.resize(img, None, fx=f, fy=f, interpolation=cv2.INTER_AREA)
-    return img
+        _draw_inliers(img, inliers_xy, f, st)
+    _draw_beams(img, camera, rig, f, st, min_range_m, max_range_m)
+    _draw_spots(img, rig, spots, f, st, rejected)
+    n_in = None if inliers_xy is None else int(np.asarray(inliers_xy).reshape(-1, 2).shape[0])
+    strip = _legend_strip(_legend_entries(rig, spots, scales, rejected, n_in), img.shape[1], st)
+    return np.vstack([img, strip])

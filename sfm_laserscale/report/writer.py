@@ -22,8 +22,10 @@ from sfm_laserscale.io.meshes import write_scaled_mesh
 from sfm_laserscale.io.openmvg import write_scaled_openmvg_sfm_data
 from sfm_laserscale.io.spots_csv import write_spots_csv
 from sfm_laserscale.io.transforms import write_matrix_4x4, write_sim3
+from sfm_laserscale.report.analysis import ReportChecksOptions, annotate
 from sfm_laserscale.report.html import render_html
 from sfm_laserscale.report.overlays import draw_overlay
+from sfm_laserscale.report.validate import check_html
 
 if TYPE_CHECKING:
     from sfm_laserscale.fusion import FusedScale
@@ -41,8 +43,9 @@ def _num(x: Any) -> float | None:
 
 
 def fused_to_dict(f: FusedScale) -> dict[str, Any]:
-    """The report's scale block of one method."""
-    return {
+    """The report's scale block of one method (DESIGN.md §6 keys first, then the details)."""
+    used = set(f.images_used)
+    d: dict[str, Any] = {
         "value": _num(f.value),
         "std": _num(f.std),
         "ci95": [_num(f.ci95[0]), _num(f.ci95[1])],
@@ -52,7 +55,22 @@ def fused_to_dict(f: FusedScale) -> dict[str, Any]:
         "n_rejected": int(f.n_rejected),
         "n_images": len(f.per_image),
         "notes": list(f.notes),
+        "std_random": _num(f.std_random),
+        "std_systematic": _num(f.std_systematic),
+        "birge_ratio": _num(f.birge_ratio),
+        "reason": f.reason,
+        "images_used": list(f.images_used),
+        "per_image": [
+            {"image": name, "scale": _num(v), "sigma": _num(sd), "used": name in used}
+            for name, (v, sd) in f.per_image.items()
+        ],
+        "rejected": [{"image": i, "laser": la, "reason": why} for i, la, why in f.rejected],
     }
+    if f.method == "pcm_joint":
+        # pcm_joint._fallback puts "...: midpoint approximation" first in its notes; the
+        # FusedScale does not carry PcmJointResult.joint itself.
+        d["midpoint_fallback"] = bool(f.notes) and f.notes[0].endswith("midpoint approximation")
+    return d
 
 
 def _estimate_dicts(run: ImageRun) -> list[dict[str, Any]]:
@@ -117,8 +135,8 @@ def build_report(
     checks: dict[str, float],
     timer: Timer,
 ) -> dict[str, Any]:
-    """report.json content (DESIGN.md §6 keys, plus inputs and options for reproduction)."""
-    return {
+    """report.json content (DESIGN.md §6 keys, plus inputs, options and the report's checks)."""
+    report: dict[str, Any] = {
         "version": __version__,
         "scale": fused_to_dict(headline),
         "methods": {m: fused_to_dict(f) for m, f in fused.items()},
@@ -142,6 +160,13 @@ def build_report(
         },
         "options": {"method": options.method, "seed": options.seed},
     }
+    # Derived keys (per-image fused values, deviations, diagnostics, warnings) are computed
+    # from the JSON form of the dict, so the HTML and report.json hold the same numbers.
+    report = json.loads(json.dumps(report, allow_nan=False))
+    checks_opt = ReportChecksOptions(
+        direction_residual_deg=options.estimation.max_direction_residual_deg
+    )
+    return annotate(report, checks_opt)
 
 
 def summary_line(headline: FusedScale, runs: Sequence[ImageRun]) -> str:
@@ -178,21 +203,32 @@ def write_estimates_csv(path: Path, runs: Sequence[ImageRun]) -> None:
                 w.writerow([run.name] + [("" if e[c] is None else e[c]) for c in cols[1:]])
 
 
+def _overlay_labels(image: dict[str, Any]) -> tuple[dict[str, float], dict[str, str]]:
+    """FCM scale per laser and laser -> reason for the rejected ones (estimation or fusion)."""
+    fcm = [e for e in image["estimates"] if e["method"] == "fcm"]
+    scales = {e["laser"]: e["scale"] for e in fcm if e["scale"] is not None}
+    rejected = {e["laser"]: e["reason"] or "rejected" for e in fcm if e["rejected"]}
+    for r in image.get("fused", {}).get("fcm", {}).get("rejected", []):
+        rejected.setdefault(r["laser"], r["reason"])
+    return scales, rejected
+
+
 def _write_overlays(
-    out: Path, runs: Sequence[ImageRun], loaded: LoadedInputs, options: ScaleOptions
+    out: Path,
+    runs: Sequence[ImageRun],
+    loaded: LoadedInputs,
+    options: ScaleOptions,
+    report: dict[str, Any],
 ) -> dict[str, str]:
     folder = out / "overlays"
     folder.mkdir()
     written: dict[str, str] = {}
+    by_name = {im["name"]: im for im in report["images"]}
     for run in runs:
         if run.camera is None:
             continue
         rgb = read_rgb(run.path)
-        scales = {
-            e.laser: e.scale
-            for e in (run.estimates.estimates if run.estimates else ())
-            if e.method == "fcm" and not e.rejected
-        }
+        scales, rejected = _overlay_labels(by_name[run.name])
         inl = None if run.registration is None else run.registration.inlier_xy_px
         img = draw_overlay(
             rgb,
@@ -203,6 +239,7 @@ def _write_overlays(
             inl,
             options.detection.min_range_m,
             options.detection.max_range_m,
+            rejected=rejected,
         )
         name = Path(run.name).stem + ".jpg"
         cv2.imwrite(str(folder / name), img, [cv2.IMWRITE_JPEG_QUALITY, 88])
@@ -237,13 +274,17 @@ def write_outputs(
         write_sim3(out / "transform.sim3", headline.value)
         write_matrix_4x4(out / "transform_4x4.txt", headline.value)
         _write_scaled(out, inputs, loaded, headline.value)
-    overlays = _write_overlays(out, runs, loaded, options) if options.overlays else {}
+    overlays = _write_overlays(out, runs, loaded, options, report) if options.overlays else {}
+    for im in report["images"]:
+        im["overlay"] = overlays.get(im["name"])
     report["timings_s"] = timer.as_dict()
-    (out / "report.html").write_text(render_html(report, out, overlays), encoding="utf-8")
-    report["timings_s"] = timer.as_dict()
-    (out / "report.json").write_text(
-        json.dumps(report, indent=2, allow_nan=False) + "\n", encoding="utf-8"
-    )
+    text = json.dumps(report, indent=2, allow_nan=False) + "\n"
+    # The page is rendered from the very JSON written, so every number in it is in report.json.
+    html = render_html(json.loads(text), out)
+    for problem in check_html(html, json.loads(text)):
+        logger.warning("report.html: %s", problem)
+    (out / "report.html").write_text(html, encoding="utf-8")
+    (out / "report.json").write_text(text, encoding="utf-8")
 
 
 __all__ = ["build_report", "summary_line", "write_outputs", "fused_to_dict"]
