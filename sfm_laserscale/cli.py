@@ -208,5 +208,61 @@ def apply(**kw: Any) -> int:
     return EXIT_OK
 
 
+@main.command()
+@click.argument("images", nargs=-1, required=True, type=_path)
+@click.option("--rig", required=True, type=_path, help="Laser rig TOML file.")
+@click.option("--out", required=True, type=_path, help="Output folder (created).")
+@click.option("--model", type=_path, help="Take the camera from this model (matched by size).")
+@click.option("--camera", help='Camera as "MODEL W H params...", e.g. "PINHOLE W H fx fy cx cy".')
+@click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
+@common_options
+def detect(**kw: Any) -> int:
+    """Detect laser spots: write spots.csv (for scale --spots), detections.json, overlays."""
+    from sfm_laserscale.detect_run import DetectInputs, run_detect
+
+    inputs = DetectInputs(images=tuple(kw["images"]), rig=kw["rig"], model=kw["model"],
+                          camera=kw["camera"])
+    result = run_detect(inputs, kw["out"], overwrite=kw["overwrite"])
+    click.echo(result.summary)
+    return EXIT_OK if result.success else EXIT_NO_SCALE
+
+
+@main.command()
+@click.argument("images", nargs=-1, required=True, type=_path)
+@click.option("--board", default="9x6", show_default=True,
+              help="Chessboard inner corners COLSxROWS (as OpenCV counts them).")
+@click.option("--square-size", required=True, type=float, help="Chessboard square size (metres).")
+@click.option("--colors", default="red", show_default=True,
+              help="Laser colour(s) to look for, comma separated (red, green, blue).")
+@click.option("--model", type=_path, help="COLMAP model / OpenMVG sfm_data.json with the "
+              "camera intrinsics (the camera of the images' size).")
+@click.option("--self-calibrate", is_flag=True,
+              help="Estimate the intrinsics from the target images (OpenCV model).")
+@click.option("--names", help="Laser names left to right, comma separated (default L1, L2, ...;"
+              " their number = lasers expected).")
+@click.option("--rig-name", default="calibrated laser rig", show_default=True)
+@click.option("--out", required=True, type=_path, help="Output folder (created).")
+@click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
+@common_options
+def calibrate(**kw: Any) -> int:
+    """Calibrate the laser rig from images of a chessboard at several distances."""
+    from sfm_laserscale.calibrate_run import CalibrateInputs, CalibrateOptions, run_calibrate
+
+    if (kw["model"] is None) == (not kw["self_calibrate"]):
+        raise InputError("give exactly one of --model PATH or --self-calibrate")
+    try:
+        cols, rows = (int(v) for v in kw["board"].lower().split("x"))
+    except ValueError:
+        raise InputError(f"--board must be COLSxROWS like 9x6, got {kw['board']!r}") from None
+    names = tuple(n.strip() for n in kw["names"].split(",")) if kw["names"] else None
+    options = CalibrateOptions(
+        board=(cols, rows), square_m=kw["square_size"], names=names, rig_name=kw["rig_name"],
+        colors=tuple(c.strip() for c in kw["colors"].split(",")))
+    result = run_calibrate(CalibrateInputs(images=tuple(kw["images"]), model=kw["model"]),
+                           kw["out"], options, overwrite=kw["overwrite"])
+    click.echo(result.summary)
+    return EXIT_OK
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from sfm_laserscale import __version__
 from sfm_laserscale.detection import DetectionOptions, DetectionResult, detect_spots
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.fusion import FusedScale, FusionOptions, fuse
@@ -23,6 +24,7 @@ from sfm_laserscale.io.models import load_model, load_model_features
 from sfm_laserscale.io.spots_csv import read_spots_csv
 from sfm_laserscale.methods.pcm_joint import PcmJointOptions, estimate_pcm_joint
 from sfm_laserscale.model import Camera, Pose, SparseModel, Spot
+from sfm_laserscale.provenance import captured_log, provenance
 from sfm_laserscale.raycast import MeshRaycaster, pixel_rays
 from sfm_laserscale.registration import (
     DescriptorIndex,
@@ -277,22 +279,26 @@ def run_scale(
 
     check_output_dir(out_dir, overwrite)
     timer = Timer()
-    with timer("load"):
-        loaded = load_inputs(inputs, options)
-        caster = MeshRaycaster(loaded.mesh.vertices, loaded.mesh.triangles)
-    runs = [
-        process_image(li, loaded, caster, options, timer)
-        for li in _progress(loaded.laser_images, options.progress, "laser images")
-    ]
-    headline, fused = fuse_methods(runs, loaded.rig, options)
+    with captured_log() as log_lines:
+        logger.info("sfm-laserscale %s: scale %s", __version__, inputs)
+        with timer("load"):
+            loaded = load_inputs(inputs, options)
+            caster = MeshRaycaster(loaded.mesh.vertices, loaded.mesh.triangles)
+        runs = [process_image(li, loaded, caster, options, timer)
+                for li in _progress(loaded.laser_images, options.progress, "laser images")]
+        headline, fused = fuse_methods(runs, loaded.rig, options)
+        checks = {"mesh_model_agreement": caster.median_distance(loaded.model.points_xyz)
+                  / max(loaded.model.extent, 1e-12)}
+        logger.info("timings so far: %s", timer.as_dict())
+        with staged_output_dir(out_dir, overwrite) as tmp, timer("write"):
+            report = build_report(inputs, options, loaded, runs, headline, fused, checks, timer)
+            report["provenance"] = provenance(
+                [inputs.model, inputs.mesh, inputs.rig, inputs.database, inputs.spots,
+                 *(li.path for li in loaded.laser_images)], options)
+            write_outputs(tmp, inputs, loaded, runs, headline, report, options, timer)
+            logger.info("run finished: %s", timer.as_dict())
+            (tmp / "run.log").write_text("\n".join(log_lines) + "\n", encoding="utf-8")
     success = bool(np.isfinite(headline.value))
-    checks = {
-        "mesh_model_agreement": caster.median_distance(loaded.model.points_xyz)
-        / max(loaded.model.extent, 1e-12)
-    }
-    with staged_output_dir(out_dir, overwrite) as tmp, timer("write"):
-        report = build_report(inputs, options, loaded, runs, headline, fused, checks, timer)
-        write_outputs(tmp, inputs, loaded, runs, headline, report, options, timer)
     summary = summary_line(headline, runs)
     return ScaleResult(
         success=success,

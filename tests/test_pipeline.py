@@ -70,3 +70,17 @@ def test_scaled_model_is_metric(baseline: Any, small_dataset: Any) -> None:
     d_est = [np.linalg.norm(est_c[a] - est_c[b]) for a in names for b in names if a < b]
     ratio = np.median(np.array(d_est) / np.array(d_true))
     assert ratio == pytest.approx(1.0, abs=0.01)
+
+
+def test_run_log_and_provenance(baseline: Any, small_dataset: Any) -> None:
+    import hashlib
+
+    log = (baseline.out_dir / "run.log").read_text()
+    assert "registration:" in log and "run finished" in log
+    prov = json.loads((baseline.out_dir / "report.json").read_text())["provenance"]
+    by_path = {d["path"]: d for d in prov["inputs"]}
+    mesh = by_path[str(small_dataset.mesh_path)]
+    assert mesh["sha256"] == hashlib.sha256(small_dataset.mesh_path.read_bytes()).hexdigest()
+    assert mesh["bytes"] == small_dataset.mesh_path.stat().st_size
+    assert any(p.endswith(".png") for p in by_path)
+    assert prov["options"]["method"] == "all" and "registration" in prov["options"]

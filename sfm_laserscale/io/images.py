@@ -29,7 +29,8 @@ class LaserImage:
     camera: Camera | None  # None when the file is not a readable image (reported, not used)
 
 
-def _expand(paths: Sequence[Path]) -> list[Path]:
+def expand_image_paths(paths: Sequence[Path]) -> list[Path]:
+    """Image files from files and folders (folders: their images, sorted by name)."""
     files: list[Path] = []
     for p in paths:
         if p.is_dir():
@@ -71,7 +72,7 @@ def find_laser_images(paths: Sequence[Path], model: SparseModel) -> tuple[LaserI
         raise InputError("no laser images given")
     found: list[LaserImage] = []
     unreadable: list[Path] = []
-    for f in _expand(paths):
+    for f in expand_image_paths(paths):
         try:
             w, h = image_size(f)
         except InputError:

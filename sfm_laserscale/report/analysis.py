@@ -157,7 +157,11 @@ def diagnostics(report: dict[str, Any], opt: ReportChecksOptions) -> dict[str, A
         "laser_deviation_max_abs_pct": float(max(abs(d) for d in all_dev)) if all_dev else None,
         "image_spread_pct": {m: image_spread_pct(b) for m, b in report["methods"].items()},
         "direction_residuals": direction_residual_flags(report, opt),
-        "mesh_model_agreement_ok": None if not _finite(mma) else bool(mma <= opt.mesh_agreement_max),
+        "mesh_model_agreement_pct": _relative(mma, 1.0),
+        "mesh_model_limit_pct": _relative(opt.mesh_agreement_max, 1.0),
+        "mesh_model_agreement_ok": (
+            None if not _finite(mma) else bool(mma <= opt.mesh_agreement_max)
+        ),
     }
 
 
@@ -262,9 +266,28 @@ def warnings(
     )
 
 
+def _relative(value: Any, ref: Any) -> float | None:
+    """100 · value / ref (None unless both are finite and ref is not 0)."""
+    if not (_finite(value) and _finite(ref)) or ref == 0:
+        return None
+    return float(100.0 * value / ref)
+
+
+def annotate_methods(report: dict[str, Any]) -> None:
+    """σ in % of the value for every scale block; each method's difference from the headline."""
+    head = report["scale"]["value"]
+    for block in [report["scale"], *report["methods"].values()]:
+        block["std_pct"] = _relative(block["std"], block["value"])
+        block["n_images_used"] = len(block.get("images_used", []))
+    for block in report["methods"].values():
+        diff = block["value"] - head if _finite(block["value"]) and _finite(head) else None
+        block["vs_headline_pct"] = _relative(diff, head)
+
+
 def annotate(report: dict[str, Any], opt: ReportChecksOptions | None = None) -> dict[str, Any]:
     """Add the derived keys to ``report`` in place (and return it)."""
     opt = opt or ReportChecksOptions()
+    annotate_methods(report)
     for im in report["images"]:
         im["fused"] = image_fused(report, im["name"])
         im["distance_m"] = image_distance_m(im)

@@ -1,39 +1,128 @@
-"""report.html: one self-contained file (images embedded as data URIs) from report.json."""
+"""report.html: one self-contained file (images embedded as data URIs, no script, no external
+CSS or fonts) rendered from the report.json dict only, plus the overlay images it names.
+
+Every number on the page is a ``<span class="num" data-key=… data-value=…>`` whose key is its
+path in report.json (a JSON list) and whose value is the JSON value there; the page shows that
+value formatted, so tests and :func:`sfm_laserscale.report.validate.check_html` can check it.
+"""
 
 from __future__ import annotations
 
 import base64
+import json
+import logging
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from jinja2 import Environment, PackageLoader, select_autoescape
+from jinja2 import Environment, PackageLoader, StrictUndefined, select_autoescape
+from markupsafe import Markup
 
-from sfm_laserscale.report.plots import per_laser_plot
+from sfm_laserscale.report import format as fm
+from sfm_laserscale.report.analysis import METHOD_LABELS, METHOD_ORDER
+from sfm_laserscale.report.plots import methods_plot, per_laser_plot
+from sfm_laserscale.report.style import laser_color_hex
+
+logger = logging.getLogger(__name__)
+
+Path_ = Sequence[str | int]
 
 
-def _fmt(value: Any, digits: int = 6) -> str:
-    if value is None:
-        return "–"
-    if isinstance(value, float):
-        return f"{value:.{digits}g}"
-    return str(value)
-
-
-def _data_uri(data: bytes, mime: str) -> str:
+def data_uri(data: bytes, mime: str) -> str:
+    """``data:<mime>;base64,...``"""
     return f"data:{mime};base64," + base64.b64encode(data).decode("ascii")
 
 
-def render_html(report: dict[str, Any], out_dir: Path, overlays: dict[str, str]) -> str:
-    """The HTML report for people; every number comes from ``report``."""
+def lookup(report: dict[str, Any], path: Path_) -> Any:
+    """The value at ``path`` (keys and list indices) of the report dict."""
+    node: Any = report
+    for part in path:
+        node = node[part]
+    return node
+
+
+class _Numbers:
+    """The template's number helper: ``n(path, kind)`` shows report[path] formatted."""
+
+    def __init__(self, report: dict[str, Any]) -> None:
+        self.report = report
+        self.decimals = fm.scale_decimals(report)
+
+    def text(self, value: Any, kind: str) -> str:
+        d = self.decimals
+        formats = {
+            "scale": lambda v: fm.fixed(v, d),
+            "inv": lambda v: fm.sig(v, 6),
+            "int": lambda v: fm.DASH if v is None else str(int(v)),
+            "pct": lambda v: fm.pct(v, 2),
+            "spct": lambda v: fm.pct(v, 2, signed=True),
+            "pct3": lambda v: fm.sig(v, 3),
+            "f2": lambda v: fm.fixed(v, 2),
+            "f1": lambda v: fm.fixed(v, 1),
+            "sig3": lambda v: fm.sig(v, 3),
+        }
+        return formats[kind](value)
+
+    def __call__(self, path: Path_, kind: str = "scale", cls: str = "") -> Markup:
+        value = lookup(self.report, path)
+        return fm.number(json.dumps(list(path)), value, self.text(value, kind), cls)
+
+
+def find(seq: Sequence[dict[str, Any]], **match: Any) -> int | None:
+    """Index of the first dict of ``seq`` whose items include ``match`` (None if none does)."""
+    for i, item in enumerate(seq):
+        if all(item.get(k) == v for k, v in match.items()):
+            return i
+    return None
+
+
+def _overlays(report: dict[str, Any], out_dir: Path) -> dict[str, str | None]:
+    """image name -> data URI of its overlay (None when the file named in report is missing)."""
+    out: dict[str, str | None] = {}
+    for im in report["images"]:
+        rel = im.get("overlay")
+        if not rel:
+            continue
+        path = out_dir / rel
+        try:
+            out[im["name"]] = data_uri(path.read_bytes(), "image/jpeg")
+        except OSError as exc:
+            logger.warning("overlay of %s not readable (%s): %s", im["name"], path, exc)
+            out[im["name"]] = None
+    return out
+
+
+def _environment() -> Environment:
     env = Environment(
         loader=PackageLoader("sfm_laserscale", "report/templates"),
         autoescape=select_autoescape(["html"]),
+        undefined=StrictUndefined,
+        trim_blocks=True,
+        lstrip_blocks=True,
     )
-    env.filters["f"] = _fmt
-    images = {}
-    for name, rel in overlays.items():
-        images[name] = _data_uri((out_dir / rel).read_bytes(), "image/jpeg")
-    plot = per_laser_plot(report)
-    return env.get_template("report.html").render(
-        r=report, overlays=images, plot=None if plot is None else _data_uri(plot, "image/png")
+    env.filters["sig"] = fm.sig
+    env.filters["pct"] = fm.pct
+    return env
+
+
+def render_html(report: dict[str, Any], out_dir: Path) -> str:
+    """The HTML report for people; every number comes from ``report`` (report.json's dict)."""
+    plots = {"per_laser": per_laser_plot(report), "methods": methods_plot(report)}
+    methods = [m for m in METHOD_ORDER if m in report["methods"]]
+    methods += [m for m in report["methods"] if m not in methods]
+    lasers = list(report["rig"]["lasers"])
+    return _environment().get_template("report.html").render(
+        r=report,
+        n=_Numbers(report),
+        overlays=_overlays(report, out_dir),
+        plots={k: None if v is None else data_uri(v, "image/png") for k, v in plots.items()},
+        methods=methods,
+        labels=METHOD_LABELS,
+        lasers=lasers,
+        colors={name: laser_color_hex(i) for i, name in enumerate(lasers)},
+        pairs=["+".join(p) for p in report["rig"]["pairs"]],
+        find=find,
     )
+
+
+__all__ = ["data_uri", "lookup", "render_html"]

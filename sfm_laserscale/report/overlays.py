@@ -9,6 +9,7 @@ so they never hide the image.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -27,6 +28,8 @@ _BLACK = (0, 0, 0)
 _WHITE = (255, 255, 255)
 _RED = hex_to_bgr(WARNING_HEX)
 _INLIER = hex_to_bgr(INLIER_HEX)
+_TEXT = (238, 238, 238)
+_LIGHT_RED = (110, 110, 255)  # the warning red, lightened for text on the dark legend strip
 Box = tuple[float, float, float, float]  # x0, y0, x1, y1 (output pixels)
 
 
@@ -42,13 +45,16 @@ class _Style:
 
     @staticmethod
     def for_size(long_side: int) -> _Style:
+        # The report shows overlays about 600 CSS pixels wide: a 1200-pixel overlay is drawn
+        # at 0.5x, so spot labels of scale 1.5 (caps ~33 px) read as ~16 CSS pixels and the
+        # legend (x 0.75) as ~12.
         u = long_side / 1200.0
         return _Style(
-            line=max(2, round(2 * u)),
-            circle=14.0 * u,
-            font=1.0 * u,
-            text_thick=max(1, round(2 * u)),
-            dot=2.2 * u,
+            line=max(2, round(3 * u)),
+            circle=20.0 * u,
+            font=1.5 * u,
+            text_thick=max(2, round(3 * u)),
+            dot=2.4 * u,
         )
 
 
@@ -60,7 +66,9 @@ def _fp(xy: NDArray[np.float64] | Sequence[float], f: float) -> tuple[int, int]:
     return int(round(x)), int(round(y))
 
 
-def _resize(img: NDArray[np.uint8], min_side: int, max_side: int) -> tuple[NDArray[np.uint8], float]:
+def _resize(
+    img: NDArray[np.uint8], min_side: int, max_side: int
+) -> tuple[NDArray[np.uint8], float]:
     long_side = max(img.shape[:2])
     target = min(max(long_side, min_side), max_side)
     f = target / long_side
@@ -70,18 +78,26 @@ def _resize(img: NDArray[np.uint8], min_side: int, max_side: int) -> tuple[NDArr
     return cv2.resize(img, None, fx=f, fy=f, interpolation=interp), f
 
 
-def _text(img: NDArray[np.uint8], text: str, org: tuple[int, int], scale: float,
-          color: tuple[int, int, int], thick: int) -> None:
-    """Text with a dark outline, legible on any background."""
-    cv2.putText(img, text, org, _FONT, scale, _BLACK, thick + 3, cv2.LINE_AA)
+def _label(img: NDArray[np.uint8], text: str, box: Box, scale: float,
+           color: tuple[int, int, int], thick: int) -> None:
+    """Text on a translucent dark box (legible on any background; OpenCV 5's putText draws
+    filled glyphs, so a thicker dark copy does not make an outline)."""
+    h, w = img.shape[:2]
+    x0, y0 = max(int(box[0]), 0), max(int(box[1]), 0)
+    x1, y1 = min(int(np.ceil(box[2])), w), min(int(np.ceil(box[3])), h)
+    if x1 > x0 and y1 > y0:
+        img[y0:y1, x0:x1] = (img[y0:y1, x0:x1] * 0.35).astype(np.uint8)
+    (tw, th), base = cv2.getTextSize(text, _FONT, scale, thick)
+    org = (int(round((box[0] + box[2] - tw) / 2)), int(round((box[1] + box[3] + th) / 2)))
     cv2.putText(img, text, org, _FONT, scale, color, thick, cv2.LINE_AA)
 
 
 def _draw_inliers(img: NDArray[np.uint8], xy: NDArray[np.float64], f: float, st: _Style) -> None:
     r = int(round(st.dot * (1 << _SHIFT)))
+    layer = img.copy()
     for p in np.asarray(xy, dtype=np.float64).reshape(-1, 2)[:3000]:
-        cv2.circle(img, _fp(p, f), r + (1 << _SHIFT), _BLACK, -1, cv2.LINE_AA, _SHIFT)
-        cv2.circle(img, _fp(p, f), r, _INLIER, -1, cv2.LINE_AA, _SHIFT)
+        cv2.circle(layer, _fp(p, f), r, _INLIER, -1, cv2.LINE_AA, _SHIFT)
+    cv2.addWeighted(layer, 0.65, img, 0.35, 0.0, dst=img)
 
 
 def _draw_beams(img: NDArray[np.uint8], camera: Camera, rig: Rig, f: float, st: _Style,
@@ -114,33 +130,50 @@ def place_labels(
     anchors: Sequence[tuple[float, float]], sizes: Sequence[tuple[float, float]],
     radius: float, width: int, height: int, obstacles: Sequence[Box] = (),
 ) -> list[Box]:
-    """Label boxes near their anchors (pixels) that overlap each other, the anchors' circles and
-    ``obstacles`` as little as possible, inside the image; greedy, candidates on rings."""
+    """Label boxes near their anchors (pixels): greedy, candidates on growing rings; a box
+    overlapping another label, a spot circle or the image border costs most, one crossing an
+    ``obstacle`` (beam line) less, and farther rings a little."""
     placed: list[Box] = []
     circles = [(x - radius, y - radius, x + radius, y + radius) for x, y in anchors]
     for (x, y), (w, h) in zip(anchors, sizes, strict=True):
-        best: tuple[float, Box] | None = None
-        for ring in (1.25, 2.0, 3.0, 4.5):
-            d = radius * ring
-            for ang in np.deg2rad([-30, 30, -150, 150, -90, 90, 0, 180]):
-                cx, cy = x + d * np.cos(ang), y + d * np.sin(ang)
-                # attach the box by its nearest side/corner to the ring point
-                bx = cx if np.cos(ang) > 0.3 else (cx - w if np.cos(ang) < -0.3 else cx - w / 2)
-                by = cy - h if np.sin(ang) < -0.3 else (cy if np.sin(ang) > 0.3 else cy - h / 2)
+        best: tuple[float, Box] = (math.inf, (x, y, x + w, y + h))
+        for ring in (1.25, 2.0, 3.0, 4.5, 6.5, 9.0):
+            d = radius * ring + 0.5 * min(w, h) * (ring > 2)
+            for ang in np.deg2rad([-30, 30, -150, 150, -90, 90, 0, 180, -60, 60, -120, 120]):
+                c, s = float(np.cos(ang)), float(np.sin(ang))
+                cx, cy = x + d * c, y + d * s
+                # attach the box by its nearest side or corner to the ring point
+                bx = cx if c > 0.3 else (cx - w if c < -0.3 else cx - w / 2)
+                by = cy - h if s < -0.3 else (cy if s > 0.3 else cy - h / 2)
                 box = (bx, by, bx + w, by + h)
-                cost = sum(_overlap(box, o) for o in [*placed, *circles, *obstacles])
-                cost = cost + 4.0 * _outside(box, width, height) + 0.02 * ring * w * h
-                if best is None or cost < best[0]:
+                hard = sum(_overlap(box, o) for o in [*placed, *circles])
+                hard += _outside(box, width, height)
+                soft = sum(_overlap(box, o) for o in obstacles)
+                cost = 10.0 * hard + soft + 0.02 * ring * w * h
+                if cost < best[0]:
                     best = (cost, box)
-            if best is not None and best[0] < 0.05 * ring * w * h:
+            if best[0] < 0.02 * (ring + 1) * w * h:  # nothing hard hit on this ring
                 break
-        assert best is not None  # the loops above always produce a candidate
         placed.append(best[1])
     return placed
 
 
+def _line_obstacles(lines: Sequence[NDArray[np.float64]], half: float) -> list[Box]:
+    """Small boxes along polylines (output pixels), so labels keep off the beam lines."""
+    boxes: list[Box] = []
+    for line in lines:
+        seg = np.diff(line, axis=0)
+        n = np.maximum(1, np.ceil(np.linalg.norm(seg, axis=1) / half)).astype(int)
+        for p, d, k in zip(line[:-1], seg, n, strict=True):
+            for t in np.linspace(0.0, 1.0, k + 1):
+                x, y = p + t * d
+                boxes.append((x - half, y - half, x + half, y + half))
+    return boxes
+
+
 def _draw_spots(img: NDArray[np.uint8], rig: Rig, spots: Sequence[Spot], f: float,
-                st: _Style, rejected: Mapping[str, str]) -> None:
+                st: _Style, rejected: Mapping[str, str],
+                lines: Sequence[NDArray[np.float64]]) -> None:
     if not spots:
         return
     h, w = img.shape[:2]
@@ -148,9 +181,9 @@ def _draw_spots(img: NDArray[np.uint8], rig: Rig, spots: Sequence[Spot], f: floa
     anchors = [(s.x * f - 0.5, s.y * f - 0.5) for s in spots]
     sizes = []
     for s in spots:
-        (tw, th), base = cv2.getTextSize(s.laser, _FONT, st.font, st.text_thick + 3)
-        sizes.append((float(tw + 4), float(th + base + 4)))
-    boxes = place_labels(anchors, sizes, r_circle, w, h)
+        (tw, th), _ = cv2.getTextSize(s.laser, _FONT, st.font, st.text_thick)
+        sizes.append((tw + 0.5 * th, 1.5 * th))
+    boxes = place_labels(anchors, sizes, r_circle, w, h, _line_obstacles(lines, 2.0 * st.line))
     for s, (ax, ay), box in zip(spots, anchors, boxes, strict=True):
         idx = rig.names.index(s.laser) if s.laser in rig.names else 0
         color = _RED if s.laser in rejected else laser_color_bgr(idx)
@@ -166,9 +199,7 @@ def _draw_spots(img: NDArray[np.uint8], rig: Rig, spots: Sequence[Spot], f: floa
             p0 = _fp(((ax + ux * r_circle + 0.5) / f, (ay + uy * r_circle + 0.5) / f), f)
             p1 = _fp(((bx + 0.5) / f, (by + 0.5) / f), f)
             cv2.line(img, p0, p1, color, max(1, st.line - 1), cv2.LINE_AA, _SHIFT)
-        org = (int(round(box[0] + 2)), int(round(box[3] - 2 - cv2.getTextSize(
-            s.laser, _FONT, st.font, st.text_thick + 3)[1])))
-        _text(img, s.laser, org, st.font, color, st.text_thick)
+        _label(img, s.laser, box, st.font, color, st.text_thick)
 
 
 def _legend_entries(rig: Rig, spots: Sequence[Spot], scales: Mapping[str, float],
@@ -196,14 +227,14 @@ def _legend_entries(rig: Rig, spots: Sequence[Spot], scales: Mapping[str, float]
 def _legend_strip(entries: Sequence[tuple[str, tuple[int, int, int], str]], width: int,
                   st: _Style) -> NDArray[np.uint8]:
     """A dark strip of legend boxes (flow layout, as many rows as needed)."""
-    scale = st.font * 0.85
+    scale = st.font * 0.75
     (_, th), base = cv2.getTextSize("Ag", _FONT, scale, st.text_thick)
     row_h = int(th + base + 2 * st.circle * 0.6 + 6)
     pad = int(st.circle)
     items, x, y = [], pad, 0
     for kind, color, text in entries:
         tw = cv2.getTextSize(text, _FONT, scale, st.text_thick)[0][0]
-        w = int(2.2 * st.circle + tw + pad)
+        w = int(2.4 * st.circle + tw + pad)
         if x + w > width and x > pad:
             x, y = pad, y + row_h
         items.append((x, y, kind, color, text))
@@ -213,15 +244,15 @@ def _legend_strip(entries: Sequence[tuple[str, tuple[int, int, int], str]], widt
         cy = y0 + row_h // 2 + pad // 4
         cx = int(x0 + st.circle)
         if kind == "spot":
-            cv2.circle(strip, (cx, cy), int(st.circle * 0.7), color, st.line, cv2.LINE_AA)
+            cv2.circle(strip, (cx, cy), int(st.circle * 0.75), color, -1, cv2.LINE_AA)
         elif kind == "dot":
             cv2.circle(strip, (cx, cy), max(2, int(st.dot * 1.5)), color, -1, cv2.LINE_AA)
         else:
-            cv2.line(strip, (int(x0), cy), (int(x0 + 2 * st.circle), cy), color, st.line,
+            cv2.line(strip, (int(x0), cy), (int(x0 + 1.6 * st.circle), cy), color, st.line,
                      cv2.LINE_AA)
-        org = (int(x0 + 2.2 * st.circle), cy + th // 2)
-        cv2.putText(strip, text, org, _FONT, scale, color if kind == "spot" else _WHITE,
-                    st.text_thick, cv2.LINE_AA)
+        org = (int(x0 + 2.4 * st.circle), cy + th // 2)
+        text_color = _LIGHT_RED if color == _RED else _TEXT
+        cv2.putText(strip, text, org, _FONT, scale, text_color, st.text_thick, cv2.LINE_AA)
     return strip
 
 
@@ -249,8 +280,8 @@ def draw_overlay(
     st = _Style.for_size(max(img.shape[:2]))
     if inliers_xy is not None:
         _draw_inliers(img, inliers_xy, f, st)
-    _draw_beams(img, camera, rig, f, st, min_range_m, max_range_m)
-    _draw_spots(img, rig, spots, f, st, rejected)
+    lines = _draw_beams(img, camera, rig, f, st, min_range_m, max_range_m)
+    _draw_spots(img, rig, spots, f, st, rejected, lines)
     n_in = None if inliers_xy is None else int(np.asarray(inliers_xy).reshape(-1, 2).shape[0])
     strip = _legend_strip(_legend_entries(rig, spots, scales, rejected, n_in), img.shape[1], st)
     return np.vstack([img, strip])

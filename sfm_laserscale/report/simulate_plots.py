@@ -39,27 +39,34 @@ def heatmaps_png(maps: Mapping[str, Mapping[str, F64]], angles_deg: F64,
     areas = list(maps)
     methods = [m for m in labels if any(m in maps[a] for a in areas)]
     fig, axes = plt.subplots(len(areas), len(methods), squeeze=False,
-                             figsize=(2.6 * len(methods) + 0.8, 2.5 * len(areas) + 0.6))
-    ext = [angles_deg[0], angles_deg[-1], angles_deg[0], angles_deg[-1]]
+                             figsize=(2.3 * len(methods) + 0.6, 2.3 * len(areas) + 0.5))
+    ext = (angles_deg[0], angles_deg[-1], angles_deg[0], angles_deg[-1])
+    ticks = [float(angles_deg[0]), 0.0, float(angles_deg[-1])]
     for i, area in enumerate(areas):
         for j, m in enumerate(methods):
-            ax = axes[i, j]
-            arr = maps[area].get(m)
-            if arr is None:
-                ax.axis("off")
-                continue
-            lim = float(np.nanmax(np.abs(arr))) if np.isfinite(arr).any() else 1.0
-            im = ax.imshow(arr.T, origin="lower", extent=ext, cmap="RdBu_r", vmin=-lim,
-                           vmax=lim, interpolation="nearest")
-            fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03).ax.tick_params(labelsize=7)
-            ax.set_title(f"{labels[m]}\n{area}", fontsize=8)
-            ax.tick_params(labelsize=7)
-            ax.set_xlabel("pitch (°)", fontsize=7)
-            ax.set_ylabel("roll (°)", fontsize=7)
-    fig.suptitle(title + " — mean error (% of the scale)", fontsize=9)
+            _heatmap_axes(fig, axes[i, j], maps[area].get(m), ext, ticks,
+                          f"{labels[m]}\n{area}", first=(j == 0, i == len(areas) - 1))
+    fig.suptitle(title + " — mean error (% of the scale); x: pitch (°), y: roll (°)", fontsize=9)
     # fixed margins: tight_layout takes seconds on a dozen axes with colour bars
-    fig.subplots_adjust(left=0.06, right=0.97, bottom=0.1, top=0.86, wspace=0.55, hspace=0.6)
+    fig.subplots_adjust(left=0.05, right=0.97, bottom=0.09, top=0.84, wspace=0.5, hspace=0.55)
     return _png(fig)
+
+
+def _heatmap_axes(fig: Any, ax: Any, arr: F64 | None, ext: tuple[float, ...],
+                  ticks: list[float], title: str, first: tuple[bool, bool]) -> None:
+    """One panel (few ticks and labels: text layout dominates matplotlib's drawing time)."""
+    if arr is None:
+        ax.axis("off")
+        return
+    lim = float(np.nanmax(np.abs(arr))) if np.isfinite(arr).any() else 1.0
+    im = ax.imshow(arr.T, origin="lower", extent=ext, cmap="RdBu_r", vmin=-lim, vmax=lim,
+                   interpolation="nearest")
+    cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03, ticks=[-lim, 0.0, lim],
+                      format="%.2g")
+    cb.ax.tick_params(labelsize=6)
+    ax.set_title(title, fontsize=7)
+    ax.set_xticks(ticks, [f"{t:g}" for t in ticks] if first[1] else [], fontsize=6)
+    ax.set_yticks(ticks, [f"{t:g}" for t in ticks] if first[0] else [], fontsize=6)
 
 
 def error_boxes_png(errors: Mapping[str, Mapping[str, Mapping[float, F64]]],

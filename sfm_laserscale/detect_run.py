@@ -1,0 +1,267 @@
+"""``detect``: laser spots of many images, with overlays, no model registration.
+
+Writes (atomically: a staged folder replaces ``DIR`` only when everything is written)::
+
+    DIR/spots.csv             image,laser,x,y,score,sigma_px,source (feeds ``scale --spots``)
+    DIR/detections.json       per image: spots (with a ``review`` flag for low scores),
+                              missing lasers with reasons, candidate count; learned beam lines
+    DIR/overlays/<stem>.jpg   spots and scores, beam lines and their search bands
+
+When the rig has uncalibrated lasers and at least ``min_images_for_lines`` images are given,
+their beam lines are learned from all images first (:mod:`sfm_laserscale.beam_lines`) and
+searched like calibrated beams.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pycolmap
+from numpy.typing import NDArray
+
+from sfm_laserscale.beam_lines import (
+    BeamLineOptions,
+    BeamLinesResult,
+    image_candidates,
+    learn_beam_lines,
+    rig_with_learned_lines,
+)
+from sfm_laserscale.detection import (
+    DetectionOptions,
+    DetectionResult,
+    beam_polyline_px,
+    default_band_px,
+    detect_spots,
+)
+from sfm_laserscale.errors import InputError
+from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
+from sfm_laserscale.io.models import load_model
+from sfm_laserscale.io.outputs import staged_output_dir
+from sfm_laserscale.io.spots_csv import write_spots_csv
+from sfm_laserscale.model import CAMERA_MODEL_IDS, Camera, SparseModel, Spot
+from sfm_laserscale.report.overlays import draw_overlay
+from sfm_laserscale.rig import Rig, load_rig
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DetectInputs:
+    """Images (files and/or folders), the rig, and the camera: a model or a camera string."""
+
+    images: tuple[Path, ...]
+    rig: Path
+    model: Path | None = None
+    camera: str | None = None  # "PINHOLE W H fx fy cx cy" (any COLMAP model name and params)
+
+
+@dataclass(frozen=True)
+class DetectRunOptions:
+    """``detection``: per-image detector settings; spots scoring below ``review_score`` are
+    flagged for review; ``lines``: beam line learning (uncalibrated lasers, >= 3 images)."""
+
+    detection: DetectionOptions = field(default_factory=DetectionOptions)
+    lines: BeamLineOptions = field(default_factory=BeamLineOptions)
+    review_score: float = 0.5
+    min_images_for_lines: int = 3
+    overlays: bool = True
+
+
+@dataclass(frozen=True)
+class DetectRunResult:
+    """Spots per image name, what was learned, where it went, a one-paragraph summary."""
+
+    out_dir: Path
+    spots: dict[str, tuple[Spot, ...]]
+    missing: dict[str, dict[str, str]]
+    learned: BeamLinesResult | None
+    n_images: int
+    summary: str
+
+    @property
+    def success(self) -> bool:
+        """True when at least one spot was found."""
+        return any(self.spots.values())
+
+
+def parse_camera(text: str) -> Camera:
+    """A Camera from "MODEL W H p1 p2 ..." (COLMAP model name and parameter order)."""
+    parts = text.replace(",", " ").split()
+    if len(parts) < 4 or parts[0].upper() not in CAMERA_MODEL_IDS:
+        raise InputError(f"--camera must be 'MODEL W H params...' (e.g. 'PINHOLE 1920 1080 "
+                         f"1500 1500 960 540'), got {text!r}")
+    try:
+        w, h = int(parts[1]), int(parts[2])
+        params = np.array([float(p) for p in parts[3:]], dtype=np.float64)
+    except ValueError:
+        raise InputError(f"--camera: not numbers in {text!r}") from None
+    cam = Camera(1, parts[0].upper(), w, h, params)
+    expected = len(pycolmap.Camera.create_from_model_name(1, cam.model, 1.0, 1, 1).params)
+    if expected != len(params) or w <= 0 or h <= 0 or not np.all(np.isfinite(params)):
+        raise InputError(f"--camera {text!r}: {cam.model} needs W H > 0 and {expected} "
+                         f"finite parameters, got {len(params)}")
+    return cam
+
+
+def _camera_model(inputs: DetectInputs) -> SparseModel:
+    """The model whose cameras the images are matched to (by size)."""
+    if (inputs.model is None) == (inputs.camera is None):
+        raise InputError("give exactly one of --model (cameras from a model) or --camera")
+    if inputs.model is not None:
+        if not inputs.model.exists():
+            raise InputError("model not found", inputs.model)
+        return load_model(inputs.model)
+    cam = parse_camera(str(inputs.camera))
+    return SparseModel(cameras={1: cam}, images={}, point3D_ids=np.zeros(0, np.uint64),
+                       points_xyz=np.zeros((0, 3)))
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One image to detect in: its name, camera and a loader of its (H, W, 3) uint8 RGB."""
+
+    name: str
+    camera: Camera
+    load: Callable[[], NDArray[np.uint8]]
+
+
+@dataclass(frozen=True)
+class ManyResult:
+    """Per-image detections, the learned lines (None if not tried), the rig searched in pass 2
+    (uncalibrated lasers with a learned line carry a pseudo beam: a search aid only)."""
+
+    results: dict[str, DetectionResult]
+    learned: BeamLinesResult | None
+    search_rig: Rig
+
+
+def detect_many(frames: Sequence[Frame], rig: Rig, options: DetectRunOptions) -> ManyResult:
+    """Detect in every frame; learn beam lines first when the rig has uncalibrated lasers."""
+    d = options.detection
+    first = {f.name: detect_spots(f.load(), f.camera, rig, d) for f in frames}
+    if all(las.calibrated for las in rig.lasers) or len(frames) < options.min_images_for_lines:
+        return ManyResult(first, None, rig)
+    cands = [image_candidates(first[f.name], f.camera) for f in frames]
+    focal = float(np.median([f.camera.focal_px for f in frames]))
+    learned = learn_beam_lines(cands, rig, focal, options.lines)
+    if not learned.lines:
+        for res in first.values():
+            res.missing.update(learned.missing)
+        return ManyResult(first, learned, rig)
+    search_rig = rig_with_learned_lines(rig, learned, d.min_range_m, d.max_range_m)
+    second = {f.name: detect_spots(f.load(), f.camera, search_rig, d) for f in frames}
+    for res in second.values():
+        res.missing.update(learned.missing)
+    return ManyResult(second, learned, search_rig)
+
+
+def _image_record(name: str, res: DetectionResult | None, review: float) -> dict[str, Any]:
+    """detections.json entry of one image."""
+    if res is None:
+        return {"name": name, "readable": False, "spots": [], "missing": {},
+                "num_candidates": 0}
+    return {
+        "name": name, "readable": True,
+        "spots": [{"laser": s.laser, "x": s.x, "y": s.y, "score": s.score,
+                   "sigma_px": s.sigma_px, "review": s.score < review} for s in res.spots],
+        "missing": dict(res.missing),
+        "num_candidates": len(res.candidates),
+        "num_valid_candidates": sum(c.score > 0 for c in res.candidates),
+    }
+
+
+def _lines_record(learned: BeamLinesResult | None) -> dict[str, Any] | None:
+    if learned is None:
+        return None
+    return {"lines": {n: {"point_normalised": ln.point.tolist(),
+                          "direction_normalised": ln.direction.tolist(),
+                          "segment": list(ln.s_range), "n_images": ln.n_images,
+                          "rms_px": ln.rms_px, "shared_with": ln.shared_with}
+                      for n, ln in learned.lines.items()},
+            "missing": learned.missing}
+
+
+def draw_bands(rgb: NDArray[np.uint8], camera: Camera, rig: Rig, options: DetectionOptions
+               ) -> NDArray[np.uint8]:
+    """Copy of ``rgb`` with each searched beam band (segment ± band_px) shaded and outlined."""
+    band = options.band_px or default_band_px(camera.width, camera.height)
+    out = rgb.copy()
+    mask = np.zeros(rgb.shape[:2], np.uint8)
+    for las in rig.lasers:
+        line = beam_polyline_px(camera, las, options.min_range_m, options.max_range_m)
+        if len(line) < 2:
+            continue
+        # COLMAP px -> OpenCV drawing coordinates: subtract 0.5 (4 fractional bits)
+        pts = np.round((line - 0.5) * 16).astype(np.int32).reshape(-1, 1, 2)
+        cv2.polylines(mask, [pts], False, 255, 2 * int(math.ceil(band)), cv2.LINE_8, 4)
+    shade = mask > 0
+    out[shade] = (0.7 * out[shade] + 0.3 * 255).astype(np.uint8)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(out, contours, -1, (255, 255, 0), 1, cv2.LINE_AA)
+    return out
+
+
+def _write_overlay(path: Path, li: LaserImage, rig: Rig, res: DetectionResult,
+                   options: DetectionOptions) -> None:
+    """overlays/<stem>.jpg: bands, beams, spots, and each spot's score."""
+    assert li.camera is not None  # callers pass readable images only
+    rgb = read_rgb(li.path)
+    img = draw_overlay(draw_bands(rgb, li.camera, rig, options), li.camera, rig, res.spots, {},
+                       None, options.min_range_m, options.max_range_m)
+    f = img.shape[1] / rgb.shape[1]
+    for s in res.spots:
+        org = (int(s.x * f + 18 * f), int(s.y * f + 30 * f))
+        for color, thick in (((0, 0, 0), 4), ((255, 255, 255), 1)):
+            cv2.putText(img, f"{s.score:.2f}", org, cv2.FONT_HERSHEY_DUPLEX, 0.6 * max(f, 1.0),
+                        color, thick, cv2.LINE_AA)
+    cv2.imwrite(str(path), img, [cv2.IMWRITE_JPEG_QUALITY, 88])
+
+
+def _summary(spots: dict[str, tuple[Spot, ...]], n_images: int, review: int,
+             learned: BeamLinesResult | None) -> str:
+    n = sum(len(v) for v in spots.values())
+    with_spots = sum(bool(v) for v in spots.values())
+    text = f"{n} spots in {with_spots} of {n_images} images ({review} flagged for review)"
+    if learned is not None:
+        text += f"; learned beam lines: {', '.join(sorted(learned.lines)) or 'none'}"
+    return text
+
+
+def run_detect(inputs: DetectInputs, out_dir: Path,
+               options: DetectRunOptions = DetectRunOptions(),  # noqa: B008 (frozen)
+               overwrite: bool = False) -> DetectRunResult:
+    """Detect spots in every image and write spots.csv, detections.json and overlays."""
+    rig = load_rig(inputs.rig)
+    images = find_laser_images(list(inputs.images), _camera_model(inputs))
+    frames = [Frame(li.name, li.camera, functools.partial(read_rgb, li.path))
+              for li in images if li.camera is not None]
+    many = detect_many(frames, rig, options)
+    results, learned, search_rig = many.results, many.learned, many.search_rig
+    spots = {li.name: results[li.name].spots for li in images if li.name in results}
+    review = sum(s.score < options.review_score for v in spots.values() for s in v)
+    record = {"images": [_image_record(li.name, results.get(li.name), options.review_score)
+                         for li in images],
+              "learned_beam_lines": _lines_record(learned),
+              "review_score": options.review_score}
+    with staged_output_dir(out_dir, overwrite) as tmp:
+        write_spots_csv(tmp / "spots.csv", spots)
+        (tmp / "detections.json").write_text(json.dumps(record, indent=2), encoding="utf-8")
+        if options.overlays:
+            (tmp / "overlays").mkdir()
+            for li in images:
+                if li.name in results:
+                    _write_overlay(tmp / "overlays" / (Path(li.name).stem + ".jpg"), li,
+                                   search_rig, results[li.name], options.detection)
+    missing = {n: dict(r.missing) for n, r in results.items()}
+    return DetectRunResult(out_dir=out_dir, spots=spots, missing=missing, learned=learned,
+                           n_images=len(images),
+                           summary=_summary(spots, len(images), review, learned))

@@ -1,0 +1,434 @@
+"""report.html: rendered from report.json only, every number traceable, plain-word warnings,
+legible overlays; on hand-made report dicts and on one real run of the small data set."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import statistics
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from sfm_laserscale.model import Camera, Spot
+from sfm_laserscale.report.analysis import annotate
+from sfm_laserscale.report.html import render_html
+from sfm_laserscale.report.overlays import draw_overlay, place_labels
+from sfm_laserscale.report.style import laser_color_bgr
+from sfm_laserscale.report.validate import check_html, parse_report_html
+from sfm_laserscale.rig import rig_from_dict
+
+LASERS = ("L1", "L2", "L3", "L4")
+PAIR = "L1+L2"
+
+# --------------------------------------------------------------------------- hand-made reports
+
+
+def _block(method: str, per_image: dict[str, tuple[float, float]], used: list[str],
+           rejected: list[dict[str, str]], n_est: int, notes: list[str] | None = None
+           ) -> dict[str, Any]:
+    """A report.json scale block as writer.fused_to_dict makes it (simple mean fusion)."""
+    vals = [per_image[i][0] for i in used]
+    if not vals:
+        return {"value": None, "std": None, "ci95": [None, None], "inverse": None,
+                "method": method, "n_estimates": 0, "n_rejected": len(rejected),
+                "n_images": len(per_image), "notes": notes or ["no usable estimate"],
+                "std_random": None, "std_systematic": None, "birge_ratio": None,
+                "reason": f"no usable {method} estimate", "images_used": [],
+                "per_image": [], "rejected": rejected}
+    v = statistics.fmean(vals)
+    sd = statistics.stdev(vals) / math.sqrt(len(vals)) if len(vals) > 1 else per_image[used[0]][1]
+    return {"value": v, "std": sd, "ci95": [v - 1.96 * sd, v + 1.96 * sd], "inverse": 1 / v,
+            "method": method, "n_estimates": n_est, "n_rejected": len(rejected),
+            "n_images": len(per_image), "notes": notes or [f"{len(vals)} image(s)"],
+            "std_random": sd, "std_systematic": 0.0, "birge_ratio": 1.2, "reason": None,
+            "images_used": list(used),
+            "per_image": [{"image": k, "scale": a, "sigma": b, "used": k in used}
+                          for k, (a, b) in per_image.items()],
+            "rejected": rejected}
+
+
+def _estimate(method: str, laser: str, scale: float, sigma: float, depth: float,
+              residual: float | None = None, rejected: bool = False,
+              reason: str | None = None) -> dict[str, Any]:
+    return {"method": method, "laser": laser, "scale": scale, "sigma": sigma,
+            "direction_residual_deg": residual, "depth_m": depth, "rejected": rejected,
+            "reason": reason}
+
+
+def make_report(n_images: int = 6, bias: dict[str, float] | None = None, bias_images: int = 4,
+                failed: int = 1, outlier: bool = True, mma: float = 1.6e-4,
+                fallback: bool = False, residual_deg: float | None = None,
+                seed: int = 0) -> dict[str, Any]:
+    """A report.json dict like build_report's, with known content, then annotated.
+
+    ``bias``: laser -> relative bias in its first ``bias_images`` images; ``failed``: images
+    that did not register (the last ones); ``outlier``: image 1's Direct 3D is left out by
+    fusion; ``residual_deg``: L2's FCM direction residual in image 0 (rejected above 3°)."""
+    rng = np.random.default_rng(seed)
+    bias = bias or {}
+    s_true, rel = 0.3153, 0.002
+    images, per = [], {m: {} for m in ("fcm", "pcm", "direct3d", "pcm_joint")}
+    used: dict[str, list[str]] = {m: [] for m in per}
+    rejected: dict[str, list[dict[str, str]]] = {m: [] for m in per}
+    n_est = {m: 0 for m in per}
+    for i in range(n_images):
+        name = f"dive_{i:03d}.jpg"
+        ok = i < n_images - failed
+        im: dict[str, Any] = {
+            "name": name, "registered": ok, "reason": None if ok else "only 12 inliers (< 30)",
+            "num_features": 5000, "num_matches": 900 if ok else 40,
+            "num_inliers": 850 - 10 * i if ok else 12, "reproj_error_px": 0.35 + 0.01 * i,
+            "cam_from_world": None, "missing_spots": {}, "estimates": [], "overlay": None,
+            "spots": [{"laser": la, "x": 300.0 + 40 * k, "y": 240.0 + 3 * k, "score": 0.9,
+                       "sigma_px": 0.1, "source": "detected"} for k, la in enumerate(LASERS)],
+        }
+        if ok:
+            depth = 2.0 + 0.3 * i
+            vals = []
+            for la in LASERS:
+                b = bias.get(la, 0.0) if i < bias_images else 0.0
+                s = s_true * (1 + b + rel * rng.standard_normal())
+                res = 0.1
+                bad = False
+                if la == "L2" and i == 0 and residual_deg is not None:
+                    res = residual_deg
+                    bad = residual_deg > 3.0
+                im["estimates"].append(_estimate(
+                    "fcm", la, s, s_true * rel, depth, res, bad,
+                    "direction residual too large" if bad else None))
+                if not bad:
+                    vals.append(s)
+                    n_est["fcm"] += 1
+            s_img = statistics.fmean(vals)
+            per["fcm"][name] = (s_img, s_true * rel / 2)
+            used["fcm"].append(name)
+            s_pcm = s_true * (1 + 0.004 + rel * rng.standard_normal())
+            s_d3 = s_true * (1 - 0.045 if (outlier and i == 1) else 1 - 0.002)
+            im["estimates"].append(_estimate("pcm", PAIR, s_pcm, s_true * rel, depth))
+            im["estimates"].append(_estimate("direct3d", PAIR, s_d3, s_true * rel, depth))
+            for m, v in (("pcm", s_pcm), ("direct3d", s_d3), ("pcm_joint", s_pcm * 0.996)):
+                per[m][name] = (v, s_true * rel)
+                if m == "direct3d" and outlier and i == 1:
+                    rejected[m].append({"image": name, "laser": PAIR, "reason":
+                                        "image scale deviates from the consensus by 9.1 "
+                                        "robust sigmas"})
+                else:
+                    used[m].append(name)
+                    n_est[m] += 1
+        else:
+            im["spots"] = []
+            im["missing_spots"] = {"L4": "no candidate blob near the beam line"}
+        images.append(im)
+    notes_pj = (["fewer than 3 images: midpoint approximation",
+                 "L1+L2: only 2 usable image(s), the joint fit needs 3", "2 image(s)"]
+                if fallback else ["joint beam direction from 5 images"])
+    methods = {m: _block(m, per[m], used[m], rejected[m], n_est[m],
+                         notes_pj if m == "pcm_joint" else None) for m in per}
+    methods["pcm_joint"]["midpoint_fallback"] = fallback
+    report = {
+        "version": "test", "scale": dict(methods["fcm"]), "methods": methods, "images": images,
+        "checks": {"mesh_model_agreement": mma},
+        "timings_s": {"load": 0.3, "detect": 0.2, "register": 12.9, "raycast": 0.4,
+                      "estimate": 0.02, "write": 0.0, "total": 14.7},
+        "inputs": {"model": "/data/sparse/0", "mesh": "/data/mesh.ply",
+                   "laser_images": ["/data/laser"], "rig": "/data/rig.toml", "images": None,
+                   "database": "/data/database.db", "features": None, "spots": None},
+        "rig": {"name": "test rig", "lasers": list(LASERS), "pairs": [["L1", "L2"]]},
+        "model": {"format": "colmap-binary", "images": 40, "points": 9000,
+                  "descriptors_indexed": 30000},
+        "options": {"method": "all", "seed": 0},
+    }
+    return annotate(json.loads(json.dumps(report)))
+
+
+def write_overlays(report: dict[str, Any], out: Path, skip: tuple[str, ...] = ()) -> None:
+    """A small JPEG per registered image, named in report['images'][i]['overlay']."""
+    (out / "overlays").mkdir(parents=True, exist_ok=True)
+    for k, im in enumerate(report["images"]):
+        rel = f"overlays/{Path(im['name']).stem}.jpg"
+        im["overlay"] = rel
+        if im["name"] in skip:
+            continue
+        img = np.zeros((120, 160, 3), np.uint8)
+        img[:, :, 1] = 60 + 20 * k
+        cv2.putText(img, im["name"], (5, 60), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255))
+        cv2.imwrite(str(out / rel), img)
+
+
+def _numbers(html: str) -> dict[tuple[Any, ...], tuple[Any, str]]:
+    page = parse_report_html(html)
+    return {tuple(json.loads(k)): (json.loads(v), t) for k, v, t in page.numbers}
+
+
+def _decimals(report: dict[str, Any]) -> int:
+    """Independent of the renderer: three significant digits of the headline σ."""
+    return 2 - math.floor(math.log10(report["scale"]["std"]))
+
+
+# --------------------------------------------------------------------------- rendering
+
+
+def test_key_numbers_shown_from_report_json(tmp_path: Path) -> None:
+    report = make_report()
+    write_overlays(report, tmp_path)
+    html = render_html(report, tmp_path)
+    assert check_html(html, report) == []
+    nums = _numbers(html)
+    d = _decimals(report)
+    s = report["scale"]
+    for path, value in [(("scale", "value"), s["value"]), (("scale", "std"), s["std"]),
+                        (("scale", "ci95", 0), s["ci95"][0]),
+                        (("scale", "ci95", 1), s["ci95"][1])]:
+        shown_value, text = nums[path]
+        assert shown_value == value
+        assert text == f"{value:.{d}f}"
+    assert float(nums[("scale", "inverse")][1]) == pytest.approx(1 / s["value"], rel=1e-5)
+    for i, im in enumerate(report["images"]):
+        for k, e in enumerate(im["estimates"]):
+            assert nums[("images", i, "estimates", k, "scale")][1] == f"{e['scale']:.{d}f}"
+        if im["reason"] is None:
+            assert ("images", i, "fused", "fcm", "scale") in nums
+    # the headline number is the first number of the page, in the summary
+    page = parse_report_html(html)
+    assert json.loads(page.numbers[0][0]) == ["scale", "value"]
+
+
+def test_check_catches_tampered_numbers(tmp_path: Path) -> None:
+    report = make_report()
+    html = render_html(report, tmp_path)
+    value = report["scale"]["value"]
+    shown = f"{value:.{_decimals(report)}f}"
+    bumped = f"{value * 1.001:.{_decimals(report)}f}"
+    bad_text = html.replace(f">{shown}</span>", f">{bumped}</span>", 1)
+    assert any("scale" in p and "shows" in p for p in check_html(bad_text, report))
+    other = json.loads(json.dumps(report))
+    other["scale"]["std"] *= 2
+    assert any('"std"' in p for p in check_html(html, other))
+
+
+def test_check_catches_missing_and_broken_overlay(tmp_path: Path) -> None:
+    report = make_report()
+    gone = report["images"][2]["name"]
+    write_overlays(report, tmp_path, skip=(gone,))
+    html = render_html(report, tmp_path)
+    assert f'data-missing-overlay="{gone}"' in html
+    assert check_html(html, report) == [f"overlay of {gone} missing (overlays/dive_002.jpg)"]
+    # a file that is not a JPEG
+    (tmp_path / "overlays" / "dive_002.jpg").write_bytes(b"not an image")
+    problems = check_html(render_html(report, tmp_path), report)
+    assert problems == ["image 'dive_002.jpg': data is not image/jpeg"]
+    # a plot removed from the page
+    html = render_html(report, tmp_path.parent)
+    no_plot = re.sub(r'<img data-plot="per-laser"[^>]*>', "", html)
+    assert "per-laser plot missing" in check_html(no_plot, report)
+
+
+def test_page_is_self_contained(tmp_path: Path) -> None:
+    report = make_report()
+    write_overlays(report, tmp_path)
+    html = render_html(report, tmp_path)
+    assert not re.search(r"<script|<link|@import|@font-face|url\(", html, re.I)
+    assert not re.search(r"(src|href)=\"(?!data:|#)", html)
+    page = parse_report_html(html)
+    assert len(page.images) == 2 + len(report["images"])  # two plots + every overlay
+    assert all(img["src"].startswith("data:image/") for img in page.images)
+
+
+def test_no_scale_report_renders_reasons(tmp_path: Path) -> None:
+    report = make_report(n_images=2, failed=2)
+    assert report["scale"]["value"] is None
+    html = render_html(report, tmp_path)
+    assert "No scale could be estimated" in html
+    assert html.count("only 12 inliers (&lt; 30)") >= 2
+    assert check_html(html, report) == []
+    assert report["warnings"][0]["code"] == "no_scale"
+
+
+# --------------------------------------------------------------------------- derived numbers
+
+
+def test_deviation_distance_and_spread_known_answers() -> None:
+    report = make_report()
+    im = report["images"][0]
+    ref = im["fused"]["fcm"]["scale"]
+    for e in im["estimates"]:
+        if e["method"] == "fcm":
+            assert im["deviation_pct"][e["laser"]] == pytest.approx(100 * (e["scale"] / ref - 1))
+    assert im["distance_m"] == pytest.approx(2.0)
+    vals = [p["scale"] for p in report["methods"]["pcm"]["per_image"]]
+    spread = 100 * statistics.stdev(vals) / statistics.fmean(vals)
+    assert report["diagnostics"]["image_spread_pct"]["pcm"] == pytest.approx(spread)
+    # the left-out Direct 3D image does not count in its spread
+    d3 = [p["scale"] for p in report["methods"]["direct3d"]["per_image"] if p["used"]]
+    assert report["diagnostics"]["image_spread_pct"]["direct3d"] == pytest.approx(
+        100 * statistics.stdev(d3) / statistics.fmean(d3))
+    assert report["scale"]["std_pct"] == pytest.approx(
+        100 * report["scale"]["std"] / report["scale"]["value"])
+
+
+def _codes(report: dict[str, Any]) -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for w in report["warnings"]:
+        out.setdefault(w["code"], []).append(w["message"])
+    return out
+
+
+def test_clean_report_has_no_warnings() -> None:
+    report = make_report(failed=0, outlier=False)
+    assert report["warnings"] == []
+
+
+def test_warnings_in_plain_words() -> None:
+    report = make_report(n_images=7, bias={"L3": 0.021}, bias_images=4, failed=1,
+                         mma=0.02, fallback=True, residual_deg=5.2)
+    codes = _codes(report)
+    (laser_msg,) = codes["laser_deviation"]
+    assert laser_msg.startswith("Laser L3 disagrees with the others by +1.")
+    assert "in 4 of 6 images" in laser_msg and "calibration" in laser_msg
+    assert "1 of 7 laser images gave no estimate: dive_006.jpg (only 12 inliers" in (
+        codes["images_failed"][0])
+    assert "Mesh–model agreement is poor" in codes["mesh_model"][0]
+    assert "2.00 %" in codes["mesh_model"][0]
+    assert "dive_000.jpg" in codes["beam_geometry"][0] and "5.2°" in codes["beam_geometry"][0]
+    (fb,) = [w for w in report["warnings"] if w["code"] == "pcm_joint_fallback"]
+    assert fb["level"] == "note"  # FCM is the headline
+    assert "only 2 usable image(s)" in fb["message"]
+    (d3,) = codes["image_outlier"] if "image_outlier" in codes else [None]
+    assert d3 is None  # the Direct 3D outlier is not the headline method's
+    assert report["diagnostics"]["per_laser"]["L3"]["n_flagged"] == 4
+
+
+def test_few_images_warns_wide_interval() -> None:
+    report = make_report(n_images=3, failed=1, outlier=False)
+    (msg,) = _codes(report)["few_images"]
+    assert msg.startswith("Only 2 images gave the FCM scale: the interval")
+
+
+def test_headline_outlier_image_is_warned() -> None:
+    report = make_report(outlier=True)
+    report["scale"] = dict(report["methods"]["direct3d"])
+    annotate(report)
+    (msg,) = _codes(report)["image_outlier"]
+    assert msg.startswith("Image dive_001.jpg was left out as an outlier: image scale deviates")
+
+
+def test_warnings_render_red_and_numbers_still_match(tmp_path: Path) -> None:
+    report = make_report(bias={"L3": 0.021}, mma=0.02, residual_deg=5.2)
+    html = render_html(report, tmp_path)
+    assert check_html(html, report) == []
+    n_warn = sum(w["level"] == "warning" for w in report["warnings"])
+    assert f"{n_warn} warnings</h2>" in html
+    assert html.count('<li class="warning"') == n_warn
+
+
+# --------------------------------------------------------------------------- overlays
+
+
+def test_place_labels_do_not_overlap() -> None:
+    anchors = [(100.0, 100.0), (108.0, 103.0), (96.0, 110.0), (104.0, 95.0), (112.0, 112.0)]
+    sizes = [(40.0, 24.0)] * len(anchors)
+    boxes = place_labels(anchors, sizes, 12.0, 400, 300)
+    for a in range(len(boxes)):
+        x0, y0, x1, y1 = boxes[a]
+        assert 0 <= x0 and 0 <= y0 and x1 <= 400 and y1 <= 300
+        for b in range(a):
+            u0, v0, u1, v1 = boxes[b]
+            assert min(x1, u1) <= max(x0, u0) or min(y1, v1) <= max(y0, v0)
+
+
+def test_labels_stay_inside_at_the_image_corner() -> None:
+    boxes = place_labels([(3.0, 3.0), (637.0, 477.0)], [(50.0, 20.0)] * 2, 10.0, 640, 480)
+    for x0, y0, x1, y1 in boxes:
+        assert x0 >= 0 and y0 >= 0 and x1 <= 640 and y1 <= 480
+
+
+def _rig() -> Any:
+    return rig_from_dict({"laser": [
+        {"name": n, "origin": [x, y, 0.0], "direction": [0.0, 0.0, 1.0]}
+        for n, x, y in (("L1", -0.1, -0.1), ("L2", 0.1, -0.1), ("L3", 0.1, 0.1))]})
+
+
+@pytest.mark.parametrize(("width", "height", "long_out"), [(640, 480, 1200), (3840, 2160, 1600)])
+def test_overlay_size_and_spot_position(width: int, height: int, long_out: int) -> None:
+    """Spots are drawn where they are (COLMAP pixels), at any input size."""
+    f_px = 0.9 * width
+    cam = Camera(1, "PINHOLE", width, height, np.array([f_px, f_px, width / 2, height / 2]))
+    rgb = np.full((height, width, 3), 90, np.uint8)
+    spot = Spot("L2", 0.25 * width + 0.5, 0.5 * height + 0.5)
+    img = draw_overlay(rgb, cam, _rig(), [spot], {"L2": 0.3153}, None, 0.5, 20.0)
+    f = long_out / max(width, height)
+    assert img.shape[1] == round(width * f)
+    assert img.shape[0] > round(height * f)  # legend strip below the photo
+    # the circle (radius 20 units of long/1200) passes right of the spot centre
+    r = 20.0 * long_out / 1200
+    cx, cy = spot.x * f - 0.5, spot.y * f - 0.5
+    ring = img[int(round(cy)), int(round(cx + r)) - 1 : int(round(cx + r)) + 2].astype(int)
+    color = np.array(laser_color_bgr(1))
+    assert np.min(np.abs(ring - color).sum(axis=1)) < 60
+    assert np.abs(img[int(round(cy)), int(round(cx))].astype(int) - 90).max() < 5  # centre clear
+
+
+def test_rejected_laser_is_red_on_the_overlay() -> None:
+    cam = Camera(1, "PINHOLE", 640, 480, np.array([576.0, 576.0, 320.0, 240.0]))
+    rgb = np.full((480, 640, 3), 90, np.uint8)
+    spot = Spot("L1", 200.5, 240.5)
+    img = draw_overlay(rgb, cam, _rig(), [spot], {}, None, 0.5, 20.0,
+                       rejected={"L1": "direction residual too large"})
+    f = 1200 / 640
+    r = 20.0
+    y, x = int(round(240.5 * f - 0.5)), int(round(200.5 * f - 0.5 + r))
+    ring = img[y, x - 1 : x + 2].astype(int)
+    red = np.array([0x2B, 0x39, 0xC0])  # WARNING_HEX in BGR
+    assert np.min(np.abs(ring - red).sum(axis=1)) < 60
+
+
+# --------------------------------------------------------------------------- a real run
+
+
+@pytest.fixture(scope="module")
+def real_run(small_dataset: Any, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return run_small(small_dataset, tmp_path_factory)
+
+
+def run_small(small_dataset: Any, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The small data set's scale run, made once per session (shared with the browser test)."""
+    from sfm_laserscale.demo import scale_inputs_for
+    from sfm_laserscale.pipeline import ScaleOptions, run_scale
+
+    out = tmp_path_factory.getbasetemp() / "report_real_run"
+    if not (out / "report.json").is_file():
+        run_scale(scale_inputs_for(small_dataset), out, ScaleOptions(progress=False),
+                  overwrite=True)
+    return out
+
+
+def test_real_run_html_agrees_with_json(real_run: Path) -> None:
+    report = json.loads((real_run / "report.json").read_text())
+    html = (real_run / "report.html").read_text()
+    assert check_html(html, report) == []
+    nums = _numbers(html)
+    d = _decimals(report)
+    assert nums[("scale", "value")] == (report["scale"]["value"],
+                                        f"{report['scale']['value']:.{d}f}")
+    page = parse_report_html(html)
+    shown = {img["data-overlay"] for img in page.images if "data-overlay" in img}
+    assert shown == {im["name"] for im in report["images"]}
+    assert {img.get("data-plot") for img in page.images} >= {"per-laser", "methods"}
+    # the added keys are in report.json
+    for key in ("diagnostics", "warnings"):
+        assert key in report
+    im0 = report["images"][0]
+    assert {"fused", "distance_m", "deviation_pct", "overlay"} <= set(im0)
+    assert im0["fused"]["fcm"]["scale"] is not None
+    assert set(report["methods"]["fcm"]) >= {"per_image", "images_used", "rejected", "std_pct"}
+
+
+def test_real_run_overlay_files_are_legible_size(real_run: Path) -> None:
+    for path in sorted((real_run / "overlays").glob("*.jpg")):
+        img = cv2.imread(str(path))
+        assert img is not None and max(img.shape[:2]) >= 1200
