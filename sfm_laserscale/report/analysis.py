@@ -86,7 +86,7 @@ def _flagged(image: dict[str, Any], laser: str, dev: float, opt: ReportChecksOpt
         (e["sigma"] for e in image["estimates"] if e["method"] == "fcm" and e["laser"] == laser),
         None,
     )
-    rel_sigma = 100.0 * sig / ref if _finite(sig) else 0.0
+    rel_sigma = 100.0 * float(sig) / ref if sig is not None and _finite(sig) else 0.0
     return abs(dev) > max(opt.laser_deviation_min_pct, opt.laser_deviation_nsigma * rel_sigma)
 
 
@@ -174,19 +174,34 @@ def _scale_warnings(report: dict[str, Any], opt: ReportChecksOptions) -> list[di
     label = _label(s["method"])
     if not _finite(s["value"]):
         why = s.get("reason") or "no usable estimate"
-        return [_w("warning", "no_scale", f"No scale could be estimated ({why}). "
-                   "Each image's reason is listed under Images.")]
+        return [
+            _w(
+                "warning",
+                "no_scale",
+                f"No scale could be estimated ({why}). Each image's reason is listed under Images.",
+            )
+        ]
     out = []
     n = len(s.get("images_used", []))
     if n <= opt.few_images:
-        out.append(_w("warning", "few_images",
-                      f"Only {n} image{'s' if n != 1 else ''} gave the {label} scale: the interval "
-                      "rests on few images and is wide; add laser images if you can."))
+        out.append(
+            _w(
+                "warning",
+                "few_images",
+                f"Only {n} image{'s' if n != 1 else ''} gave the {label} scale: the interval "
+                "rests on few images and is wide; add laser images if you can.",
+            )
+        )
     birge = s.get("birge_ratio")
     if _finite(birge) and birge > opt.birge_note:
-        out.append(_w("note", "scatter",
-                      f"The {label} estimates scatter {birge:.1f} times more than their own "
-                      "uncertainties predict; the interval was widened accordingly."))
+        out.append(
+            _w(
+                "note",
+                "scatter",
+                f"The {label} estimates scatter {birge:.1f} times more than their own "
+                "uncertainties predict; the interval was widened accordingly.",
+            )
+        )
     return out
 
 
@@ -196,22 +211,37 @@ def _image_warnings(report: dict[str, Any], opt: ReportChecksOptions) -> list[di
     if failed:
         names = ", ".join(f"{im['name']} ({im['reason']})" for im in failed[:6])
         more = f" and {len(failed) - 6} more" if len(failed) > 6 else ""
-        out.append(_w("warning", "images_failed",
-                      f"{len(failed)} of {len(report['images'])} laser images gave no estimate: "
-                      f"{names}{more}."))
+        out.append(
+            _w(
+                "warning",
+                "images_failed",
+                f"{len(failed)} of {len(report['images'])} laser images gave no estimate: "
+                f"{names}{more}.",
+            )
+        )
     head = report["scale"]["method"]
     for im in report["images"]:
         f = im.get("fused", {}).get(head)
         if f is not None and f["scale"] is not None and not f["used"]:
             why = f["rejected"][0]["reason"] if f["rejected"] else "outlier"
-            out.append(_w("warning", "image_outlier",
-                          f"Image {im['name']} was left out as an outlier: {why}."))
+            out.append(
+                _w(
+                    "warning",
+                    "image_outlier",
+                    f"Image {im['name']} was left out as an outlier: {why}.",
+                )
+            )
         err = im.get("reproj_error_px")
         if im["registered"] and _finite(err) and err > opt.max_reproj_error_px:
-            out.append(_w("warning", "reprojection",
-                          f"Image {im['name']} registered with a mean reprojection error of "
-                          f"{err:.2f} px (limit {opt.max_reproj_error_px:g} px): its pose is "
-                          "doubtful."))
+            out.append(
+                _w(
+                    "warning",
+                    "reprojection",
+                    f"Image {im['name']} registered with a mean reprojection error of "
+                    f"{err:.2f} px (limit {opt.max_reproj_error_px:g} px): its pose is "
+                    "doubtful.",
+                )
+            )
     return out
 
 
@@ -220,15 +250,25 @@ def _laser_warnings(report: dict[str, Any], diag: dict[str, Any]) -> list[dict[s
     for laser, st in diag["per_laser"].items():
         k, n = st["n_flagged"], st["n_images"]
         if k >= 1 and 2 * k >= n:
-            out.append(_w("warning", "laser_deviation",
-                          f"Laser {laser} disagrees with the others by "
-                          f"{st['median_deviation_pct']:+.1f} % (median) and is off in {k} of "
-                          f"{n} images: check its calibration and its spot detection."))
+            out.append(
+                _w(
+                    "warning",
+                    "laser_deviation",
+                    f"Laser {laser} disagrees with the others by "
+                    f"{st['median_deviation_pct']:+.1f} % (median) and is off in {k} of "
+                    f"{n} images: check its calibration and its spot detection.",
+                )
+            )
     for r in diag["direction_residuals"]:
         what = "rejected" if r["rejected"] else "kept"
-        out.append(_w("warning", "beam_geometry",
-                      f"In {r['image']}, the spot of {r['laser']} is {r['residual_deg']:.1f}° off "
-                      f"its beam's geometry ({what}): wrong spot, swapped lasers or calibration."))
+        out.append(
+            _w(
+                "warning",
+                "beam_geometry",
+                f"In {r['image']}, the spot of {r['laser']} is {r['residual_deg']:.1f}° off "
+                f"its beam's geometry ({what}): wrong spot, swapped lasers or calibration.",
+            )
+        )
     return out
 
 
@@ -236,11 +276,16 @@ def _check_warnings(report: dict[str, Any], opt: ReportChecksOptions) -> list[di
     out = []
     mma = report["checks"].get("mesh_model_agreement")
     if _finite(mma) and mma > opt.mesh_agreement_max:
-        out.append(_w("warning", "mesh_model",
-                      f"Mesh–model agreement is poor: the sparse points lie a median "
-                      f"{100 * mma:.2f} % of the model's extent from the mesh (expected below "
-                      f"{100 * opt.mesh_agreement_max:.1f} %). Is the mesh from this model, in "
-                      "the same frame?"))
+        out.append(
+            _w(
+                "warning",
+                "mesh_model",
+                f"Mesh–model agreement is poor: the sparse points lie a median "
+                f"{100 * mma:.2f} % of the model's extent from the mesh (expected below "
+                f"{100 * opt.mesh_agreement_max:.1f} %). Is the mesh from this model, in "
+                "the same frame?",
+            )
+        )
     pj = report["methods"].get("pcm_joint")
     if pj is not None and pj.get("midpoint_fallback"):
         level = "warning" if report["scale"]["method"] == "pcm_joint" else "note"
@@ -248,9 +293,14 @@ def _check_warnings(report: dict[str, Any], opt: ReportChecksOptions) -> list[di
         # fallback notes: [head, one reason per rig pair, fusion notes...] (pcm_joint._fallback)
         pair_reasons = notes[1 : 1 + len(report["rig"]["pairs"])]
         why = "; ".join(pair_reasons) or notes[0]
-        out.append(_w(level, "pcm_joint_fallback",
-                      f"PCM-joint fell back to the midpoint approximation ({why}); it can "
-                      "overestimate the separation by up to 1.5 % on rough terrain."))
+        out.append(
+            _w(
+                level,
+                "pcm_joint_fallback",
+                f"PCM-joint fell back to the midpoint approximation ({why}); it can "
+                "overestimate the separation by up to 1.5 % on rough terrain.",
+            )
+        )
     return out
 
 

@@ -111,17 +111,21 @@ def render_html(report: dict[str, Any], out_dir: Path) -> str:
     methods = [m for m in METHOD_ORDER if m in report["methods"]]
     methods += [m for m in report["methods"] if m not in methods]
     lasers = list(report["rig"]["lasers"])
-    return _environment().get_template("report.html").render(
-        r=report,
-        n=_Numbers(report),
-        overlays=_overlays(report, out_dir),
-        plots={k: None if v is None else data_uri(v, "image/png") for k, v in plots.items()},
-        methods=methods,
-        labels=METHOD_LABELS,
-        lasers=lasers,
-        colors={name: laser_color_hex(i) for i, name in enumerate(lasers)},
-        pairs=["+".join(p) for p in report["rig"]["pairs"]],
-        find=find,
+    return (
+        _environment()
+        .get_template("report.html")
+        .render(
+            r=report,
+            n=_Numbers(report),
+            overlays=_overlays(report, out_dir),
+            plots={k: None if v is None else data_uri(v, "image/png") for k, v in plots.items()},
+            methods=methods,
+            labels=METHOD_LABELS,
+            lasers=lasers,
+            colors={name: laser_color_hex(i) for i, name in enumerate(lasers)},
+            pairs=["+".join(p) for p in report["rig"]["pairs"]],
+            find=find,
+        )
     )
 
 

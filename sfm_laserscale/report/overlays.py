@@ -78,8 +78,14 @@ def _resize(
     return cv2.resize(img, None, fx=f, fy=f, interpolation=interp), f
 
 
-def _label(img: NDArray[np.uint8], text: str, box: Box, scale: float,
-           color: tuple[int, int, int], thick: int) -> None:
+def _label(
+    img: NDArray[np.uint8],
+    text: str,
+    box: Box,
+    scale: float,
+    color: tuple[int, int, int],
+    thick: int,
+) -> None:
     """Text on a translucent dark box (legible on any background; OpenCV 5's putText draws
     filled glyphs, so a thicker dark copy does not make an outline)."""
     h, w = img.shape[:2]
@@ -100,8 +106,15 @@ def _draw_inliers(img: NDArray[np.uint8], xy: NDArray[np.float64], f: float, st:
     cv2.addWeighted(layer, 0.65, img, 0.35, 0.0, dst=img)
 
 
-def _draw_beams(img: NDArray[np.uint8], camera: Camera, rig: Rig, f: float, st: _Style,
-                min_range_m: float, max_range_m: float) -> list[NDArray[np.float64]]:
+def _draw_beams(
+    img: NDArray[np.uint8],
+    camera: Camera,
+    rig: Rig,
+    f: float,
+    st: _Style,
+    min_range_m: float,
+    max_range_m: float,
+) -> list[NDArray[np.float64]]:
     """Predicted beam lines (calibrated lasers); returns their output-pixel polylines."""
     lines = []
     for i, las in enumerate(rig.lasers):
@@ -126,9 +139,20 @@ def _outside(box: Box, width: int, height: int) -> float:
     return (box[2] - box[0]) * (box[3] - box[1]) - inside
 
 
+def _box_distance(box: Box, x: float, y: float) -> float:
+    """Distance from a point to a box (0 inside)."""
+    dx = max(box[0] - x, 0.0, x - box[2])
+    dy = max(box[1] - y, 0.0, y - box[3])
+    return math.hypot(dx, dy)
+
+
 def place_labels(
-    anchors: Sequence[tuple[float, float]], sizes: Sequence[tuple[float, float]],
-    radius: float, width: int, height: int, obstacles: Sequence[Box] = (),
+    anchors: Sequence[tuple[float, float]],
+    sizes: Sequence[tuple[float, float]],
+    radius: float,
+    width: int,
+    height: int,
+    obstacles: Sequence[Box] = (),
 ) -> list[Box]:
     """Label boxes near their anchors (pixels): greedy, candidates on growing rings; a box
     overlapping another label, a spot circle or the image border costs most, one crossing an
@@ -148,6 +172,10 @@ def place_labels(
                 box = (bx, by, bx + w, by + h)
                 hard = sum(_overlap(box, o) for o in [*placed, *circles])
                 hard += _outside(box, width, height)
+                # ambiguous: the box is nearer to another spot than to its own
+                own = _box_distance(box, x, y)
+                if any(_box_distance(box, u, v) < own for u, v in anchors if (u, v) != (x, y)):
+                    hard += 0.5 * w * h
                 soft = sum(_overlap(box, o) for o in obstacles)
                 cost = 10.0 * hard + soft + 0.02 * ring * w * h
                 if cost < best[0]:
@@ -171,9 +199,15 @@ def _line_obstacles(lines: Sequence[NDArray[np.float64]], half: float) -> list[B
     return boxes
 
 
-def _draw_spots(img: NDArray[np.uint8], rig: Rig, spots: Sequence[Spot], f: float,
-                st: _Style, rejected: Mapping[str, str],
-                lines: Sequence[NDArray[np.float64]]) -> None:
+def _draw_spots(
+    img: NDArray[np.uint8],
+    rig: Rig,
+    spots: Sequence[Spot],
+    f: float,
+    st: _Style,
+    rejected: Mapping[str, str],
+    lines: Sequence[NDArray[np.float64]],
+) -> None:
     if not spots:
         return
     h, w = img.shape[:2]
@@ -194,7 +228,7 @@ def _draw_spots(img: NDArray[np.uint8], rig: Rig, spots: Sequence[Spot], f: floa
         bx = min(max(ax, box[0]), box[2])
         by = min(max(ay, box[1]), box[3])
         dist = float(np.hypot(bx - ax, by - ay))
-        if dist > r_circle * 1.6:  # leader line from the circle to a far label
+        if dist > r_circle * 1.15:  # leader line from the circle to a label not touching it
             ux, uy = (bx - ax) / dist, (by - ay) / dist
             p0 = _fp(((ax + ux * r_circle + 0.5) / f, (ay + uy * r_circle + 0.5) / f), f)
             p1 = _fp(((bx + 0.5) / f, (by + 0.5) / f), f)
@@ -202,9 +236,13 @@ def _draw_spots(img: NDArray[np.uint8], rig: Rig, spots: Sequence[Spot], f: floa
         _label(img, s.laser, box, st.font, color, st.text_thick)
 
 
-def _legend_entries(rig: Rig, spots: Sequence[Spot], scales: Mapping[str, float],
-                    rejected: Mapping[str, str], n_inliers: int | None
-                    ) -> list[tuple[str, tuple[int, int, int], str]]:
+def _legend_entries(
+    rig: Rig,
+    spots: Sequence[Spot],
+    scales: Mapping[str, float],
+    rejected: Mapping[str, str],
+    n_inliers: int | None,
+) -> list[tuple[str, tuple[int, int, int], str]]:
     """(kind, colour, text) per legend box: one per laser, then inliers and beams."""
     seen = {s.laser for s in spots}
     out: list[tuple[str, tuple[int, int, int], str]] = []
@@ -224,8 +262,9 @@ def _legend_entries(rig: Rig, spots: Sequence[Spot], scales: Mapping[str, float]
     return out
 
 
-def _legend_strip(entries: Sequence[tuple[str, tuple[int, int, int], str]], width: int,
-                  st: _Style) -> NDArray[np.uint8]:
+def _legend_strip(
+    entries: Sequence[tuple[str, tuple[int, int, int], str]], width: int, st: _Style
+) -> NDArray[np.uint8]:
     """A dark strip of legend boxes (flow layout, as many rows as needed)."""
     scale = st.font * 0.75
     (_, th), base = cv2.getTextSize("Ag", _FONT, scale, st.text_thick)
@@ -248,8 +287,9 @@ def _legend_strip(entries: Sequence[tuple[str, tuple[int, int, int], str]], widt
         elif kind == "dot":
             cv2.circle(strip, (cx, cy), max(2, int(st.dot * 1.5)), color, -1, cv2.LINE_AA)
         else:
-            cv2.line(strip, (int(x0), cy), (int(x0 + 1.6 * st.circle), cy), color, st.line,
-                     cv2.LINE_AA)
+            cv2.line(
+                strip, (int(x0), cy), (int(x0 + 1.6 * st.circle), cy), color, st.line, cv2.LINE_AA
+            )
         org = (int(x0 + 2.4 * st.circle), cy + th // 2)
         text_color = _LIGHT_RED if color == _RED else _TEXT
         cv2.putText(strip, text, org, _FONT, scale, text_color, st.text_thick, cv2.LINE_AA)

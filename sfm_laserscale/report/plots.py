@@ -20,7 +20,7 @@ from sfm_laserscale.report.style import WARNING_HEX, laser_color_hex  # noqa: E4
 
 _DPI = 150
 _INK = "#1a1a1a"
-_RC = {
+_RC: Any = {
     "font.size": 9.5,
     "axes.titlesize": 10.5,
     "axes.labelsize": 9.5,
@@ -61,7 +61,7 @@ def _limits(points: list[_Point], extra: list[Any]) -> tuple[float, float] | Non
     ys = [float(y) for y in extra if _finite(y)]
     for p in points:
         if p.kept:
-            e = p.err if _finite(p.err) else 0.0
+            e = float(p.err) if p.err is not None and _finite(p.err) else 0.0
             ys += [p.y - e, p.y + e]
     if not ys:
         return None
@@ -76,16 +76,33 @@ def _draw(ax: Axes, points: list[_Point], extra: list[Any], fmt: str) -> None:
     lim = _limits(points, extra)
     for p in points:
         if lim is None or lim[0] <= p.y <= lim[1]:
-            ax.errorbar(p.x, p.y, yerr=p.err, fmt=p.marker, ms=p.size,
-                        mfc=p.color if p.filled else "white", mec=p.color, ecolor=p.color,
-                        mew=1.6, elinewidth=1.0, capsize=2, zorder=4 if p.filled else 3)
+            ax.errorbar(
+                p.x,
+                p.y,
+                yerr=p.err,
+                fmt=p.marker,
+                ms=p.size,
+                mfc=p.color if p.filled else "white",
+                mec=p.color,
+                ecolor=p.color,
+                mew=1.6,
+                elinewidth=1.0,
+                capsize=2,
+                zorder=4 if p.filled else 3,
+            )
             continue
         top = p.y > lim[1]
         y = lim[1] if top else lim[0]
         ax.plot(p.x, y, "^" if top else "v", ms=8, color=p.color, clip_on=False, zorder=5)
-        ax.annotate(fmt.format(p.y), (p.x, y), xytext=(7, -2 if top else 2),
-                    textcoords="offset points", fontsize=8, color=p.color,
-                    va="top" if top else "bottom")
+        ax.annotate(
+            fmt.format(p.y),
+            (p.x, y),
+            xytext=(7, -2 if top else 2),
+            textcoords="offset points",
+            fontsize=8,
+            color=p.color,
+            va="top" if top else "bottom",
+        )
     if lim is not None:
         ax.set_ylim(*lim)
 
@@ -111,7 +128,7 @@ def _image_ticks(ax: Axes, names: list[str]) -> None:
 
 def _band(ax: Axes, block: dict[str, Any], label: str, rel_to: float | None = None) -> None:
     """Fused value (dashed) and its 95 % interval (grey band), optionally in % of ``rel_to``."""
-    v = block.get("value")
+    v: Any = block.get("value")
     lo, hi = block.get("ci95", [None, None])
     if not _finite(v):
         return
@@ -120,12 +137,13 @@ def _band(ax: Axes, block: dict[str, Any], label: str, rel_to: float | None = No
         return x if rel_to is None else 100.0 * (x / rel_to - 1.0)
 
     if _finite(lo) and _finite(hi):
-        ax.axhspan(t(lo), t(hi), color="0.6", alpha=0.22, lw=0, zorder=0)
-    ax.axhline(t(v), ls="--", color="0.15", lw=1.1, zorder=1, label=label)
+        ax.axhspan(t(float(lo)), t(float(hi)), color="0.6", alpha=0.22, lw=0, zorder=0)
+    ax.axhline(t(float(v)), ls="--", color="0.15", lw=1.1, zorder=1, label=label)
 
 
-def _laser_points(report: dict[str, Any], images: list[dict[str, Any]], method: str,
-                  names: list[str]) -> tuple[list[_Point], list[_Point]]:
+def _laser_points(
+    report: dict[str, Any], images: list[dict[str, Any]], method: str, names: list[str]
+) -> tuple[list[_Point], list[_Point]]:
     """Circles per laser (scale; deviation from the image) and the images' crosses."""
     top: list[_Point] = []
     dev: list[_Point] = []
@@ -143,8 +161,8 @@ def _laser_points(report: dict[str, Any], images: list[dict[str, Any]], method: 
                 err = e["sigma"] if _finite(e["sigma"]) else None
                 top.append(_Point(i + dx, e["scale"], err, mk, c, not bad))
                 d = im.get("deviation_pct", {}).get(laser) if method == "fcm" else None
-                if _finite(d):
-                    dev.append(_Point(i + dx, d, None, mk, c, not bad))
+                if d is not None and _finite(d):
+                    dev.append(_Point(i + dx, float(d), None, mk, c, not bad))
     for i, im in enumerate(images):
         f = im.get("fused", {}).get(method)
         if f and _finite(f["scale"]):
@@ -156,12 +174,24 @@ def _laser_points(report: dict[str, Any], images: list[dict[str, Any]], method: 
 
 def _legend_handles(report: dict[str, Any], names: list[str], method: str) -> list[Line2D]:
     def mk(marker: str, color: str, label: str, mfc: str = "white") -> Line2D:
-        return Line2D([], [], marker=marker, ls="none", color=color, mec=color, mfc=mfc,
-                      mew=1.6, ms=7, label=label)
+        return Line2D(
+            [],
+            [],
+            marker=marker,
+            ls="none",
+            color=color,
+            mec=color,
+            mfc=mfc,
+            mew=1.6,
+            ms=7,
+            label=label,
+        )
 
     lasers = report["rig"]["lasers"]
-    h = [mk("o", laser_color_hex(lasers.index(n) if n in lasers else i), n)
-         for i, n in enumerate(names)]
+    h = [
+        mk("o", laser_color_hex(lasers.index(n) if n in lasers else i), n)
+        for i, n in enumerate(names)
+    ]
     h.append(mk("x", _INK, "image estimate", mfc=_INK))
     h.append(Line2D([], [], ls="--", color="0.15", label=f"fused {METHOD_LABELS[method]}"))
     h.append(Line2D([], [], lw=7, color="0.6", alpha=0.4, label="95 % interval"))
@@ -171,10 +201,16 @@ def _legend_handles(report: dict[str, Any], names: list[str], method: str) -> li
 
 def _names(report: dict[str, Any], images: list[dict[str, Any]], method: str) -> list[str]:
     """Lasers (FCM) or pairs (PCM) that have an estimate, in rig order."""
-    pool = report["rig"]["lasers"] if method == "fcm" else [
-        "+".join(p) for p in report["rig"]["pairs"]]
-    return [n for n in pool if any(e["method"] == method and e["laser"] == n
-                                   for im in images for e in im["estimates"])]
+    pool = (
+        report["rig"]["lasers"]
+        if method == "fcm"
+        else ["+".join(p) for p in report["rig"]["pairs"]]
+    )
+    return [
+        n
+        for n in pool
+        if any(e["method"] == method and e["laser"] == n for im in images for e in im["estimates"])
+    ]
 
 
 def per_laser_plot(report: dict[str, Any]) -> bytes | None:
@@ -188,8 +224,13 @@ def per_laser_plot(report: dict[str, Any]) -> bytes | None:
     names = _names(report, images, method)
     with plt.rc_context(_RC):
         fig, (ax, ax_dev) = plt.subplots(
-            2, 1, figsize=(10.0, 6.2), sharex=True, gridspec_kw={"height_ratios": [3, 2]},
-            layout="constrained")
+            2,
+            1,
+            figsize=(10.0, 6.2),
+            sharex=True,
+            gridspec_kw={"height_ratios": [3, 2]},
+            layout="constrained",
+        )
         block = report["methods"].get(method, {})
         _band(ax, block, f"fused {METHOD_LABELS[method]}")
         top, dev = _laser_points(report, images, method, names)
@@ -199,8 +240,11 @@ def per_laser_plot(report: dict[str, Any]) -> bytes | None:
         ax.set_title(f"{METHOD_LABELS[method]} estimate per image and {what}", loc="left")
         ax.grid(axis="y", alpha=0.3)
         ax.ticklabel_format(axis="y", useOffset=False)
-        ax.legend(handles=_legend_handles(report, names, method), loc="upper left",
-                  bbox_to_anchor=(1.01, 1.0))
+        ax.legend(
+            handles=_legend_handles(report, names, method),
+            loc="upper left",
+            bbox_to_anchor=(1.01, 1.0),
+        )
         lim = report.get("diagnostics", {}).get("thresholds", {}).get("laser_deviation_min_pct")
         ax_dev.axhline(0.0, color="0.15", lw=1.0)
         if _finite(lim):
@@ -237,17 +281,47 @@ def methods_plot(report: dict[str, Any]) -> bytes | None:
                     continue
                 c = _INK if f["used"] else WARNING_HEX
                 err = 100.0 * f["sigma"] / head if _finite(f["sigma"]) else None
-                pts.append(_Point(i + dx, 100.0 * (f["scale"] / head - 1.0), err,
-                                  markers.get(m, "o"), c, f["used"], m == "fcm", 7.0))
+                pts.append(
+                    _Point(
+                        i + dx,
+                        100.0 * (f["scale"] / head - 1.0),
+                        err,
+                        markers.get(m, "o"),
+                        c,
+                        f["used"],
+                        m == "fcm",
+                        7.0,
+                    )
+                )
         lo, hi = report["scale"]["ci95"]
         band = [100.0 * (x / head - 1.0) for x in (lo, hi) if _finite(x)]
         _draw(ax, pts, [0.0, *band], "{:+.2f} %")
-        handles = [Line2D([], [], marker=markers.get(m, "o"), ls="none", color=_INK,
-                          mfc=_INK if m == "fcm" else "white", ms=7, label=METHOD_LABELS[m])
-                   for m in methods]
+        handles = [
+            Line2D(
+                [],
+                [],
+                marker=markers.get(m, "o"),
+                ls="none",
+                color=_INK,
+                mfc=_INK if m == "fcm" else "white",
+                ms=7,
+                label=METHOD_LABELS[m],
+            )
+            for m in methods
+        ]
         handles.append(Line2D([], [], lw=7, color="0.6", alpha=0.4, label="headline 95 %"))
-        handles.append(Line2D([], [], marker="s", ls="none", color=WARNING_HEX, mfc="white",
-                              ms=7, label="left out"))
+        handles.append(
+            Line2D(
+                [],
+                [],
+                marker="s",
+                ls="none",
+                color=WARNING_HEX,
+                mfc="white",
+                ms=7,
+                label="left out",
+            )
+        )
         ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0))
         ax.axhline(0.0, color="0.15", lw=1.0, ls="--")
         ax.set_ylabel("vs. headline scale (%)")

@@ -151,13 +151,14 @@ def _labels(methods: Sequence[str], group_size: int) -> dict[str, str]:
     return {m: method_label(m, group_size) for m in methods}
 
 
-def _rows(a: dict[str, NDArray[Any]], vocab: list[str], keys: Sequence[Any], method: str,
-          **match: Any) -> NDArray[np.bool_]:
+def _rows(result: SimulationResult, a: dict[str, NDArray[Any]], method: str, **match: Any
+          ) -> NDArray[np.bool_]:
     """Rows of one method whose setting key matches every given field."""
-    if method not in vocab:
-        return np.zeros(len(a["value"]), dtype=bool)
-    kids = [i for i, k in enumerate(keys) if all(getattr(k, f) == v for f, v in match.items())]
-    return np.asarray((a["method"] == vocab.index(method)) & np.isin(a["key"], kids))
+    from sfm_laserscale.synthetic.simulate import method_rows
+
+    t = result.collected.table
+    kids = [i for i, k in enumerate(t.keys) if all(getattr(k, f) == v for f, v in match.items())]
+    return np.asarray(method_rows(t, a, method) & np.isin(a["key"], kids))
 
 
 def _error_figures(result: SimulationResult, a: dict[str, NDArray[Any]]) -> dict[str, bytes]:
@@ -169,7 +170,7 @@ def _error_figures(result: SimulationResult, a: dict[str, NDArray[Any]]) -> dict
         for area in sorted({k.area for k in t.keys}):
             per = {m: {d: 100 * (a["value"][rows] / opts.true_scale - 1)
                        for d in opts.distances_m
-                       if (rows := _rows(a, t.vocab, t.keys, m, config=config, area=area,
+                       if (rows := _rows(result, a, m, config=config, area=area,
                                          distance_m=d)).any()}
                    for m in BOX_METHODS}
             errors[area] = {m: v for m, v in per.items() if v}
@@ -184,7 +185,7 @@ def _scatter_figures(result: SimulationResult, a: dict[str, NDArray[Any]]) -> di
         series = {}
         for m, label in (("pcm", "PCM (midpoint)"),
                          ("pcm_joint_view", f"PCM-joint direction ({opts.group_size} views)")):
-            rows = _rows(a, t.vocab, t.keys, m, config=config) & np.isfinite(a["depth"])
+            rows = _rows(result, a, m, config=config) & np.isfinite(a["depth"])
             if rows.any():
                 series[label] = (a["depth"][rows], 100 * (a["value"][rows] / opts.true_scale - 1))
         if series:
@@ -215,7 +216,7 @@ def simulation_figures(result: SimulationResult) -> dict[str, bytes]:
         out.update(_scatter_figures(result, a))
     z = {}
     for m in Z_METHODS:
-        rows = _rows(a, t.vocab, t.keys, m) & (a["sigma"] > 0)
+        rows = _rows(result, a, m) & (a["sigma"] > 0)
         z[m] = (a["value"][rows] - opts.true_scale) / a["sigma"][rows]
     out["calibration.png"] = calibration_png(z, _labels(Z_METHODS, opts.group_size),
                                              f"normalised errors, {opts.mode} (all settings)")

@@ -51,12 +51,14 @@ import json
 import logging
 import math
 import multiprocessing
+import os
 import sys
 import time
 from array import array
 from collections import Counter, defaultdict
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -81,6 +83,7 @@ from sfm_laserscale.uncertainty import (
     EstimationOptions,
     ImageEstimates,
     ImageObservation,
+    SpotHit,
     estimate_image,
 )
 
@@ -103,11 +106,33 @@ MODE_DEFAULTS: dict[str, dict[str, Any]] = {
 SPOT_MARGIN_PX = 8.0
 #: Davis & Tusting query points: a 5 × 5 grid over the central half of the image.
 DT_GRID = 5
+#: Edge check of a spot (``edge_check``): rays on a ring of this many σ around the spot …
+EDGE_RING_SIGMA = 3.0
+EDGE_RING_RAYS = 8
+#: … may leave the tangent plane by this fraction of the range change the plane predicts.
+EDGE_TOLERANCE = 0.5
+
+
+def pinhole_camera(width: int, height: int, focal_px: float) -> Camera:
+    """PINHOLE camera with the principal point at the image centre."""
+    if width < 16 or height < 16 or not focal_px > 0:
+        raise InputError(f"camera needs width, height >= 16 px and a positive focal length, "
+                         f"got {width} {height} {focal_px}")
+    return Camera(1, "PINHOLE", int(width), int(height),
+                  np.array([focal_px, focal_px, width / 2.0, height / 2.0]))
 
 
 def default_camera() -> Camera:
     """PINHOLE 1920 × 1080, f = 1500 px, principal point at the image centre."""
-    return Camera(1, "PINHOLE", 1920, 1080, np.array([1500.0, 1500.0, 960.0, 540.0]))
+    return pinhole_camera(1920, 1080, 1500.0)
+
+
+def available_workers() -> int:
+    """CPUs this process may use (the default number of worker processes)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
 
 
 # --------------------------------------------------------------------------- configurations
@@ -564,6 +589,9 @@ class LaserOutcome:
     davis_tusting: float  # NaN unless the rig allows it
     depth_difference_m: dict[str, float]  # pair -> (X_2 − X_1)·v of the true hits, metres
     observation: ImageObservation | None  # what the estimators saw (for PCM-joint groups)
+    edge_spots: tuple[str, ...] = ()  # lasers whose spot failed the edge check (edge_check)
+    fused_checked: dict[str, tuple[float, float, float, float, float]] = field(
+        default_factory=dict)  # per-view fusion without the edge spots (when there are any)
 
 
 @dataclass(frozen=True)
@@ -577,6 +605,7 @@ class TrialRecord:
     rotation_error_deg: float
     centre_error_m: float
     outcomes: tuple[LaserOutcome, ...]
+    cpu_s: float = 0.0  # CPU time of the trial (its process)
 
 
 @dataclass(frozen=True)
@@ -675,6 +704,40 @@ def _fused_tuple(f: FusedScale) -> tuple[float, float, float, float, float]:
     return (float(f.value), float(f.std), float(f.ci95[0]), float(f.ci95[1]), gls)
 
 
+def edge_check(caster: MeshRaycaster, camera: Camera, pose: Pose, hit: SpotHit) -> bool:
+    """True when the spot's first-order σ cannot hold: rays ``EDGE_RING_SIGMA`` σ around the
+    spot meet the mesh off the hit's tangent plane by more than ``EDGE_TOLERANCE`` × the range
+    change the plane predicts (a depth edge, a crest seen edge-on, an occlusion boundary).
+
+    Not part of ``scale`` (a proposal): the estimates are reported with and without it.
+    """
+    if not hit.sigma_px > 0:
+        return False
+    theta = np.linspace(0.0, 2 * np.pi, EDGE_RING_RAYS, endpoint=False)
+    ring = hit.xy_px[None] + EDGE_RING_SIGMA * hit.sigma_px * np.column_stack(
+        [np.cos(theta), np.sin(theta)])
+    origins, dirs = pixel_rays(camera, pose.inverse(), ring)
+    res = caster.cast(origins, dirs)
+    centre = pose.center
+    t0 = float(np.linalg.norm(hit.hit_world - centre))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_plane = ((hit.hit_world - centre) @ hit.normal_world) / (dirs @ hit.normal_world)
+    t_mesh = np.where(res.hit, res.distance, np.inf)
+    nonlinear = float(np.max(np.abs(t_mesh - t_plane)))
+    linear = float(np.max(np.abs(t_plane - t0)))
+    return not nonlinear <= EDGE_TOLERANCE * linear + 1e-9 * t0
+
+
+def _checked(ctx: TrialContext, setting: LaserSetting, obs: ImageObservation,
+             edges: Sequence[str]) -> dict[str, tuple[float, float, float, float, float]]:
+    """Per-view fusions of the estimates left when the edge spots are dropped."""
+    kept = tuple(h for h in obs.hits if h.laser not in edges)
+    if not kept:
+        return {}
+    est = estimate_image(replace(obs, hits=kept), setting.rig, ctx.options.estimation)
+    return {m: _fused_tuple(fuse([est], m, ctx.options.fusion)) for m in METHODS if est.of(m)}
+
+
 def evaluate_setting(ctx: TrialContext, index: int, truth: Sequence[TrueSpot], job: ViewJob,
                      pose: Pose, covariance: F64 | None, z: F64) -> LaserOutcome:
     """Noisy spots (z: (L, 2) unit normals) → ray casts with the estimated pose → estimates."""
@@ -696,7 +759,9 @@ def evaluate_setting(ctx: TrialContext, index: int, truth: Sequence[TrueSpot], j
     est = estimate_image(obs, setting.rig, ctx.options.estimation)
     fused = {m: _fused_tuple(fuse([est], m, ctx.options.fusion)) for m in METHODS if est.of(m)}
     dt = _davis_tusting(ctx, setting.rig, spots, pose)
-    return LaserOutcome(index, reasons, est, fused, dt, depth, obs)
+    edges = tuple(h.laser for h in hits if edge_check(ctx.caster, ctx.camera, pose, h))
+    checked = _checked(ctx, setting, obs, edges) if edges else {}
+    return LaserOutcome(index, reasons, est, fused, dt, depth, obs, edges, checked)
 
 
 def _pose_errors(true_model: Pose, est: Pose, k: float) -> tuple[float, float]:
@@ -708,6 +773,7 @@ def _pose_errors(true_model: Pose, est: Pose, k: float) -> tuple[float, float]:
 
 def run_trial(ctx: TrialContext, job: ViewJob) -> TrialRecord:
     """Features → estimate_pose → spots → ray casts → estimates, for every laser setting."""
+    cpu0 = time.process_time()
     rng = np.random.default_rng(job.seed)
     k = ctx.options.true_scale
     true_model = Pose(job.cam_from_world.R, job.cam_from_world.t / k)
@@ -718,7 +784,8 @@ def run_trial(ctx: TrialContext, job: ViewJob) -> TrialRecord:
     res = estimate_pose(xy, xyz, ctx.camera, replace(ctx.options.pose, seed=seed))
     if not res.success or res.cam_from_world is None:
         nan = float("nan")
-        return TrialRecord(job, False, res.reason, res.num_inliers, nan, nan, ())
+        return TrialRecord(job, False, res.reason, res.num_inliers, nan, nan, (),
+                           time.process_time() - cpu0)
     pose = res.cam_from_world
     truths: dict[str, list[TrueSpot]] = {}
     outcomes = []
@@ -728,7 +795,8 @@ def run_trial(ctx: TrialContext, job: ViewJob) -> TrialRecord:
         outcomes.append(evaluate_setting(ctx, i, truths[s.config], job, pose, res.covariance,
                                          z[i]))
     rot, centre = _pose_errors(true_model, pose, k)
-    return TrialRecord(job, True, None, res.num_inliers, rot, centre, tuple(outcomes))
+    return TrialRecord(job, True, None, res.num_inliers, rot, centre, tuple(outcomes),
+                       time.process_time() - cpu0)
 
 
 # --------------------------------------------------------------------------- running trials
@@ -748,30 +816,51 @@ def _work(job: ViewJob) -> TrialRecord:
     return run_trial(_WORKER, job)
 
 
-def run_trials(caster: MeshRaycaster, settings: tuple[LaserSetting, ...],
-               jobs: Sequence[ViewJob], options: SimulationOptions) -> Iterator[TrialRecord]:
-    """Every job's record, in job order (a pool of ``options.workers`` spawned processes)."""
+def _group_work(task: GroupTask) -> GroupResult:
+    return joint_group(task)
+
+
+Mapper = Callable[[Callable[[Any], Any], Sequence[Any]], Iterator[Any]]
+
+
+@contextmanager
+def worker_pool(caster: MeshRaycaster, settings: tuple[LaserSetting, ...],
+                options: SimulationOptions, n_jobs: int) -> Iterator[Mapper]:
+    """An ordered ``map`` for trials and groups: in this process, or in ``options.workers``
+    spawned processes (each builds its own ray caster once)."""
+    global _WORKER
+    if options.workers == 1 or n_jobs < 8 * options.workers:
+        previous = _WORKER
+        _WORKER = TrialContext(caster, options.camera, settings, options)
+        try:
+            yield lambda fn, items: map(fn, items)
+        finally:
+            _WORKER = previous
+        return
+    quiet = replace(options, progress=False)
+    with ProcessPoolExecutor(options.workers, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=_init_worker,
+                             initargs=(caster.vertices, caster.triangles, options.camera,
+                                       settings, quiet)) as pool:
+        def pmap(fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[Any]:
+            chunk = max(1, min(16, len(items) // (8 * options.workers)))
+            return pool.map(fn, items, chunksize=chunk)
+
+        yield pmap
+
+
+def _progress(items: Iterable[Any], total: int, desc: str, options: SimulationOptions
+              ) -> Iterator[Any]:
     from tqdm import tqdm
 
-    bar = tqdm(total=len(jobs), desc=f"simulate {options.mode}", unit="view",
-               disable=not options.progress or not sys.stderr.isatty())
-    if options.workers == 1 or len(jobs) < 4 * options.workers:
-        ctx = TrialContext(caster, options.camera, settings, options)
-        for job in jobs:
-            yield run_trial(ctx, job)
-            bar.update()
-        bar.close()
-        return
-    chunk = max(1, min(16, len(jobs) // (8 * options.workers)))
-    pool = ProcessPoolExecutor(options.workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_init_worker,
-                               initargs=(caster.vertices, caster.triangles, options.camera,
-                                         settings, replace(options, progress=False)))
-    with pool:
-        for rec in pool.map(_work, jobs, chunksize=chunk):
-            yield rec
-            bar.update()
-    bar.close()
+    yield from tqdm(items, total=total, desc=desc, unit="view", leave=False,
+                    disable=not options.progress or not sys.stderr.isatty())
+
+
+def run_trials(pmap: Mapper, jobs: Sequence[ViewJob], options: SimulationOptions
+               ) -> Iterator[TrialRecord]:
+    """Every job's record, in job order."""
+    yield from _progress(pmap(_work, jobs), len(jobs), f"simulate {options.mode}", options)
 
 
 # --------------------------------------------------------------------------- collecting
@@ -791,7 +880,7 @@ class SampleTable:
     """Column store of every estimate: one row per (view, method, laser or pair)."""
 
     FLOATS = ("value", "sigma", "lo", "hi", "pitch", "roll", "depth")
-    INTS = ("key", "view", "round", "sign", "method", "sub")
+    INTS = ("key", "view", "round", "sign", "method", "sub", "edge")
 
     def __init__(self) -> None:
         self.keys: list[SettingKey] = []
@@ -817,12 +906,14 @@ class SampleTable:
 
     def add(self, key: SettingKey, method: str, sub: str, value: float, sigma: float,
             interval: tuple[float, float], view: tuple[int, int, int, float, float],
-            depth: float = float("nan")) -> None:
-        """One estimate; view = (view id, round, sign, pitch, roll)."""
+            depth: float = float("nan"), edge: int = 0) -> None:
+        """One estimate; view = (view id, round, sign, pitch, roll); edge: 0 normal, 1 only
+        without the edge check (it uses an edge spot), −1 only with it (``edge_check``)."""
         floats = (value, sigma, interval[0], interval[1], view[3], view[4], depth)
         for c, v in zip(self.FLOATS, floats, strict=True):
             self._f[c].append(float(v))
-        ints = (self.key_id(key), view[0], view[1], view[2], self.code(method), self.code(sub))
+        ints = (self.key_id(key), view[0], view[1], view[2], self.code(method), self.code(sub),
+                edge)
         for c, n in zip(self.INTS, ints, strict=True):
             self._i[c].append(int(n))
 
@@ -849,6 +940,7 @@ class Collected:
     failed: Counter[str] = field(default_factory=Counter)
     rotation_error_deg: list[float] = field(default_factory=list)
     centre_error_m: list[float] = field(default_factory=list)
+    cpu_s: list[float] = field(default_factory=list)  # per trial
 
 
 def _view(job: ViewJob) -> tuple[int, int, int, float, float]:
@@ -859,24 +951,40 @@ def _interval(value: float, sigma: float) -> tuple[float, float]:
     return (value - Z95 * sigma, value + Z95 * sigma)
 
 
+def _ingest_fused(col: Collected, key: SettingKey, v: tuple[int, int, int, float, float],
+                  out: LaserOutcome) -> None:
+    """Per-view fusions (pipeline σ and σ without Birge inflation), with and without the edge
+    spots when the view has any."""
+    variants = [(out.fused, 1 if out.edge_spots else 0)]
+    if out.edge_spots:
+        variants.append((out.fused_checked, -1))
+    for fused, edge in variants:
+        for m, (value, std, lo, hi, gls) in fused.items():
+            if not math.isfinite(value):
+                col.rejected[(key, f"{m}_fused")] += edge >= 0
+                continue
+            col.table.add(key, f"{m}_fused", "", value, std, (lo, hi), v, edge=edge)
+            col.table.add(key, f"{m}_fused_gls", "", value, gls, _interval(value, gls), v,
+                          edge=edge)
+
+
 def _ingest_outcome(col: Collected, key: SettingKey, job: ViewJob, out: LaserOutcome) -> None:
     """Rows of one laser setting in one view: singles, per-view fusions, Davis & Tusting."""
     t, v = col.table, _view(job)
-    for laser, _ in out.spot_reasons.items():
+    for laser in out.spot_reasons:
         col.rejected[(key, f"spot:{laser}")] += 1
+    for laser in out.edge_spots:
+        col.rejected[(key, f"edge:{laser}")] += 1
     if out.estimates is not None:
         for e in out.estimates.estimates:
             if e.rejected or not (math.isfinite(e.scale) and math.isfinite(e.sigma)):
                 col.rejected[(key, e.method)] += 1
                 continue
             depth = abs(out.depth_difference_m.get(e.laser, float("nan")))
-            t.add(key, e.method, e.laser, e.scale, e.sigma, _interval(e.scale, e.sigma), v, depth)
-    for m, (value, std, lo, hi, gls) in out.fused.items():
-        if math.isfinite(value):
-            t.add(key, f"{m}_fused", "", value, std, (lo, hi), v)
-            t.add(key, f"{m}_fused_gls", "", value, gls, _interval(value, gls), v)
-        else:
-            col.rejected[(key, f"{m}_fused")] += 1
+            edge = int(any(las in out.edge_spots for las in e.laser.split("+")))
+            t.add(key, e.method, e.laser, e.scale, e.sigma, _interval(e.scale, e.sigma), v,
+                  depth, edge)
+    _ingest_fused(col, key, v, out)
     if math.isfinite(out.davis_tusting):
         t.add(key, "davis_tusting", "", out.davis_tusting, float("nan"), (np.nan, np.nan), v)
     if out.observation is not None and out.estimates is not None:
@@ -888,6 +996,7 @@ def collect(records: Iterable[TrialRecord], settings: Sequence[LaserSetting]) ->
     col = Collected()
     for rec in records:
         col.views += 1
+        col.cpu_s.append(rec.cpu_s)
         job = rec.job
         if not rec.registered:
             col.failed[rec.reason or "registration failed"] += 1
@@ -904,64 +1013,117 @@ def collect(records: Iterable[TrialRecord], settings: Sequence[LaserSetting]) ->
     return col
 
 
-def _joint_group(col: Collected, key: SettingKey, items: Sequence[tuple[ViewJob, LaserOutcome]],
-                 rig: Rig, gid: int, options: SimulationOptions) -> None:
+@dataclass(frozen=True)
+class GroupTask:
+    """A group of views of one setting for PCM-joint (sent to a worker)."""
+
+    key: SettingKey
+    gid: int
+    views: tuple[tuple[int, int, int, float, float], ...]  # _view of each member
+    depths: tuple[dict[str, float], ...]
+    observations: tuple[ImageObservation, ...]
+    estimates: tuple[ImageEstimates, ...]
+    rig: Rig
+    options: SimulationOptions
+
+
+Row = tuple[str, str, float, float, tuple[float, float], tuple[int, int, int, float, float],
+            float]
+
+
+@dataclass(frozen=True)
+class GroupResult:
+    """Rows (method, laser/pair, value, σ, interval, view, depth) and rejected methods."""
+
+    key: SettingKey
+    rows: tuple[Row, ...]
+    rejected: tuple[str, ...]
+
+
+def joint_group(task: GroupTask) -> GroupResult:
     """PCM-joint over one group of views, the midpoint PCM fused over the same views, and
     each view's scale with the joint beam direction."""
-    obs = [out.observation for _, out in items if out.observation is not None]
-    res = estimate_pcm_joint(obs, rig, PcmJointOptions(estimation=options.estimation,
-                                                       fusion=options.fusion))
+    opts = task.options
+    res = estimate_pcm_joint(task.observations, task.rig,
+                             PcmJointOptions(estimation=opts.estimation, fusion=opts.fusion))
     nan = float("nan")
-    first = items[0][0]
-    group_view = (gid, first.round, first.sign, nan, nan)
-    if res.joint and math.isfinite(res.fused.value):
-        f = res.fused
-        col.table.add(key, "pcm_joint", "", f.value, f.std, f.ci95, group_view)
+    first = task.views[0]
+    gview = (task.gid, first[1], first[2], nan, nan)
+    rows: list[Row] = []
+    rejected = []
+    f = res.fused
+    if res.joint and math.isfinite(f.value):
+        rows.append(("pcm_joint", "", f.value, f.std, f.ci95, gview, nan))
     else:
-        col.rejected[(key, "pcm_joint")] += 1
-    mid = fuse([out.estimates for _, out in items if out.estimates is not None], "pcm",
-               options.fusion)
+        rejected.append("pcm_joint")
+    mid = fuse(task.estimates, "pcm", opts.fusion)
     if math.isfinite(mid.value):
-        col.table.add(key, "pcm_group", "", mid.value, mid.std, mid.ci95, group_view)
-    by_name = {out.observation.image: (job, out) for job, out in items
-               if out.observation is not None}
+        rows.append(("pcm_group", "", mid.value, mid.std, mid.ci95, gview, nan))
+    member = {o.image: i for i, o in enumerate(task.observations)}
     for fit in res.pairs if res.joint else ():
         for im in fit.images:
-            if im.rejected or im.image not in by_name:
+            if im.rejected or im.image not in member:
                 continue
-            job, out = by_name[im.image]
-            depth = abs(out.depth_difference_m.get(fit.pair, nan))
-            col.table.add(key, "pcm_joint_view", fit.pair, im.implied_scale, im.implied_sigma,
-                          _interval(im.implied_scale, im.implied_sigma), _view(job), depth)
+            i = member[im.image]
+            rows.append(("pcm_joint_view", fit.pair, im.implied_scale, im.implied_sigma,
+                         _interval(im.implied_scale, im.implied_sigma), task.views[i],
+                         abs(task.depths[i].get(fit.pair, nan))))
+    return GroupResult(task.key, tuple(rows), tuple(rejected))
 
 
-def add_pcm_joint(col: Collected, settings: Sequence[LaserSetting], options: SimulationOptions
-                  ) -> None:
-    """PCM-joint over random groups of ``group_size`` views of one setting (not for the noise
-    table: its views are identical, which leaves the beam direction undetermined)."""
+def group_tasks(col: Collected, settings: Sequence[LaserSetting], options: SimulationOptions
+                ) -> list[GroupTask]:
+    """Random groups of ``group_size`` views of one setting, noise draw and sign (none for the
+    noise table: its views are identical, which leaves the beam direction undetermined)."""
     if options.mode == "noise-table":
-        return
+        return []
     rigs = {s.config: s.rig for s in settings}
-    gid = 0
-    for n, ((key, _, _), items) in enumerate(sorted(col.groups.items(),
-                                                         key=lambda kv: kv[0])):
+    tasks: list[GroupTask] = []
+    for n, ((key, _, _), items) in enumerate(sorted(col.groups.items(), key=lambda kv: kv[0])):
         rig = rigs[key.config]
         if not rig.pairs or len(items) < options.group_size:
             continue
         rng = np.random.default_rng(np.random.SeedSequence([options.seed, 5, n]))
         order = rng.permutation(len(items))
         for idx in np.array_split(order, len(items) // options.group_size):
-            _joint_group(col, key, [items[i] for i in idx], rig, gid, options)
-            gid += 1
+            members = [items[i] for i in idx]
+            tasks.append(GroupTask(
+                key, len(tasks), tuple(_view(j) for j, _ in members),
+                tuple(o.depth_difference_m for _, o in members),
+                tuple(o.observation for _, o in members if o.observation is not None),
+                tuple(o.estimates for _, o in members if o.estimates is not None), rig,
+                options))
+    return tasks
+
+
+def add_groups(col: Collected, results: Iterable[GroupResult]) -> None:
+    """Add the PCM-joint rows of every group (and forget the views kept for grouping)."""
+    for res in results:
+        for method, sub, value, sigma, interval, view, depth in res.rows:
+            col.table.add(res.key, method, sub, value, sigma, interval, view, depth)
+        for method in res.rejected:
+            col.rejected[(res.key, method)] += 1
     col.groups.clear()
 
 
 # --------------------------------------------------------------------------- statistics
 
 #: Methods in the order of tables and figures.
-METHOD_ORDER = ("fcm", "fcm_fused", "fcm_fused_gls", "pcm", "pcm_fused", "pcm_fused_gls",
-                "pcm_group", "pcm_joint", "pcm_joint_view", "direct3d", "direct3d_fused",
-                "direct3d_fused_gls", "davis_tusting")
+METHOD_ORDER = ("fcm", "fcm_checked", "fcm_fused", "fcm_fused_checked", "fcm_fused_gls",
+                "pcm", "pcm_checked", "pcm_fused", "pcm_fused_gls", "pcm_group", "pcm_joint",
+                "pcm_joint_view", "direct3d", "direct3d_fused", "direct3d_fused_gls",
+                "davis_tusting")
+CHECKED = "_checked"
+
+
+def method_rows(t: SampleTable, a: dict[str, NDArray[Any]], method: str) -> NDArray[np.bool_]:
+    """Rows of a reported method; ``<m>_checked`` is ``<m>`` with the edge check applied."""
+    checked = method.endswith(CHECKED)
+    base = method[: -len(CHECKED)] if checked else method
+    if base not in t.vocab:
+        return np.zeros(len(a["value"]), dtype=bool)
+    edge_ok = a["edge"] <= 0 if checked else a["edge"] >= 0
+    return np.asarray((a["method"] == t.code(base)) & edge_ok)
 #: Methods with a laser or pair name per row (also reported per laser / pair).
 PER_SUB = ("fcm", "pcm", "direct3d", "pcm_joint_view")
 
@@ -1027,9 +1189,7 @@ def summarize(col: Collected, options: SimulationOptions) -> list[dict[str, Any]
         in_key = a["key"] == kid
         methods: dict[str, Any] = {}
         for m in METHOD_ORDER:
-            if m not in t.vocab:
-                continue
-            rows = in_key & (a["method"] == t.code(m))
+            rows = in_key & method_rows(t, a, m)
             if rows.any():
                 methods[m] = {**_stats_for(a, rows, options), "n_rejected": col.rejected[(key, m)]}
             subs = sorted({t.vocab[c] for c in a["sub"][rows]}) if m in PER_SUB else []
@@ -1053,7 +1213,7 @@ def overall(col: Collected, options: SimulationOptions) -> dict[str, dict[str, A
         in_config = np.isin(a["key"], [i for i, key in enumerate(t.keys) if key.config == config])
         per: dict[str, Any] = {}
         for m in METHOD_ORDER:
-            rows = in_config & (a["method"] == t.code(m)) if m in t.vocab else in_config & False
+            rows = in_config & method_rows(t, a, m)
             if rows.any():
                 s = _stats_for(a, rows, options)
                 per[m] = {k: s[k] for k in ("n", "z_mean", "z_rms", "coverage95",
@@ -1077,8 +1237,8 @@ def grid_maps(col: Collected, options: SimulationOptions
     for kid, key in enumerate(t.keys):
         maps: dict[str, F64] = {}
         for m in MAP_METHODS:
-            rows = (a["key"] == kid) & (a["method"] == t.code(m)) if m in t.vocab else None
-            if rows is None or not rows.any():
+            rows = (a["key"] == kid) & method_rows(t, a, m)
+            if not rows.any():
                 continue
             ip = np.clip(np.round((a["pitch"][rows] - angles[0]) / options.angle_step_deg), 0,
                          n - 1).astype(int)
@@ -1099,6 +1259,8 @@ def method_label(method: str, group_size: int) -> str:
     """Human name of a reported method."""
     return {
         "fcm": "FCM single laser", "fcm_fused": "FCM fused (per view)",
+        "fcm_checked": "FCM single laser, edge check",
+        "fcm_fused_checked": "FCM fused, edge check", "pcm_checked": "PCM, edge check",
         "fcm_fused_gls": "FCM fused, σ without Birge inflation",
         "pcm": "PCM (midpoint)", "pcm_fused": "PCM fused (per view)",
         "pcm_fused_gls": "PCM fused, σ without Birge inflation",
@@ -1289,13 +1451,15 @@ def simulate(inputs: SimulationInputs, options: SimulationOptions) -> Simulation
     t0 = time.perf_counter()
     jobs = make_jobs(scene, caster, options)
     timings["views"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    col = collect(run_trials(caster, settings, jobs, options), settings)
-    timings["trials"] = time.perf_counter() - t0
-    timings["trials_per_view_ms"] = 1e3 * timings["trials"] / max(len(jobs), 1)
-    t0 = time.perf_counter()
-    add_pcm_joint(col, settings, options)
-    timings["pcm_joint"] = time.perf_counter() - t0
+    with worker_pool(caster, settings, options, len(jobs)) as pmap:
+        t0 = time.perf_counter()
+        col = collect(run_trials(pmap, jobs, options), settings)
+        timings["trials"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        tasks = group_tasks(col, settings, options)
+        add_groups(col, pmap(_group_work, tasks))
+        timings["pcm_joint"] = time.perf_counter() - t0
+    timings["trial_cpu_ms_mean"] = 1e3 * float(np.mean(col.cpu_s)) if col.cpu_s else 0.0
     timings["total"] = time.perf_counter() - t_all
     timings["workers"] = float(options.workers)
     results = build_results(scene, settings, col, options, timings)
@@ -1312,7 +1476,7 @@ def _trial_rows(col: Collected) -> Iterator[list[Any]]:
         key = t.keys[int(a["key"][i])]
         yield [key.config, key.area, f"{key.distance_m:g}", f"{key.sigma_f_px:g}",
                f"{key.sigma_l_px:g}", t.vocab[int(a["method"][i])], t.vocab[int(a["sub"][i])],
-               int(a["view"][i]), int(a["round"][i]), int(a["sign"][i]),
+               int(a["view"][i]), int(a["round"][i]), int(a["sign"][i]), int(a["edge"][i]),
                *(f"{float(a[c][i]):.10g}" for c in ("pitch", "roll", "value", "sigma", "lo",
                                                    "hi", "depth"))]
 
@@ -1322,8 +1486,8 @@ def write_trials_csv(path: Path, col: Collected) -> None:
     with gzip.open(path, "wt", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(["config", "area", "distance_m", "sigma_f_px", "sigma_l_px", "method",
-                    "laser", "view", "round", "sign", "pitch_deg", "roll_deg", "scale", "sigma",
-                    "ci95_lo", "ci95_hi", "depth_difference_m"])
+                    "laser", "view", "round", "sign", "edge", "pitch_deg", "roll_deg", "scale",
+                    "sigma", "ci95_lo", "ci95_hi", "depth_difference_m"])
         w.writerows(_trial_rows(col))
 
 
