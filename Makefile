@@ -9,9 +9,10 @@ STAMP := $(VENV)/.installed
 all: install
 
 # scripts/install.sh is the one install script (docker/Dockerfile runs it too): system libraries,
-# Debian's colmap when it can (optional: tests that need it skip), the package into .venv.
+# Debian's colmap and chromium when it can (optional: tests that need them skip), the package
+# into .venv.
 $(STAMP): pyproject.toml scripts/install.sh
-	bash scripts/install.sh --venv $(VENV) --python $(PY) --extras test --editable --colmap
+	bash scripts/install.sh --venv $(VENV) --python $(PY) --extras test --editable --colmap --browser
 	touch $(STAMP)
 
 install: $(STAMP)

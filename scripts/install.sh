@@ -6,15 +6,18 @@
 #      and libgomp1; with --colmap also Debian's `colmap` (3.8 on bookworm, CPU only; about
 #      15 s and 42 packages here). colmap is optional: if it cannot be installed the script
 #      only warns (the tests that need it skip, the COLMAP plugin falls back to pycolmap).
+#      With --browser also Debian's `chromium` (optional, for the report's headless-browser
+#      test; the test skips when it is absent).
 #   2. the Python package with the given extras: into --venv DIR (created when missing) or
 #      into the Python given by --python (default python3), editable with --editable.
 #   3. a check that Open3D, pycolmap and OpenCV import.
 #
 # usage: scripts/install.sh [--venv DIR] [--python PY] [--extras LIST] [--editable] [--colmap]
+#                           [--browser]
 set -euo pipefail
 
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
-VENV="" PY=python3 EXTRAS="" EDITABLE=0 COLMAP=0
+VENV="" PY=python3 EXTRAS="" EDITABLE=0 COLMAP=0 BROWSER=0
 while [ $# -gt 0 ]; do
   case "$1" in
     --venv) VENV=$2; shift 2 ;;
@@ -22,7 +25,8 @@ while [ $# -gt 0 ]; do
     --extras) EXTRAS=$2; shift 2 ;;
     --editable) EDITABLE=1; shift ;;
     --colmap) COLMAP=1; shift ;;
-    -h|--help) sed -n '2,14p' "$0"; exit 0 ;;
+    --browser) BROWSER=1; shift ;;
+    -h|--help) sed -n '2,17p' "$0"; exit 0 ;;
     *) echo "install.sh: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -77,14 +81,20 @@ install_system() {
       say "could not install ${required[*]} with apt-get; Open3D will not import without" \
           "libusb-1.0.so.0"; exit 1; }
   fi
-  [ "$COLMAP" -eq 1 ] || return 0
-  mapfile -t optional < <(missing_packages colmap)
-  [ ${#optional[@]} -gt 0 ] || return 0
-  if apt_possible && { say "installing Debian's colmap (optional)"; apt_install colmap; }; then
+  [ "$COLMAP" -eq 0 ] || install_optional colmap \
+    "the tests that need the colmap CLI will skip and the COLMAP plugin will use pycolmap"
+  [ "$BROWSER" -eq 0 ] || install_optional chromium \
+    "the report's headless-browser test will skip"
+}
+
+install_optional() {  # install_optional PACKAGE CONSEQUENCE: apt-get install, warn on failure
+  local missing
+  mapfile -t missing < <(missing_packages "$1")
+  [ ${#missing[@]} -gt 0 ] || return 0
+  if apt_possible && { say "installing Debian's $1 (optional)"; apt_install "$1"; }; then
     return 0
   fi
-  say "WARNING: could not install Debian's colmap; the tests that need the colmap CLI will" \
-      "skip and the COLMAP plugin will use pycolmap"
+  say "WARNING: could not install Debian's $1; $2"
 }
 
 install_python() {

@@ -371,6 +371,25 @@ def test_no_scale_report_renders_reasons(tmp_path: Path) -> None:
     assert report["warnings"][0]["code"] == "no_scale"
 
 
+def test_pair_only_rig_renders(tmp_path: Path) -> None:
+    """No calibrated laser: PCM is the headline, the per-laser plot shows the pair."""
+    base = make_report(failed=0, outlier=False)
+    for im in base["images"]:
+        im["estimates"] = [e for e in im["estimates"] if e["method"] != "fcm"]
+        for key in ("fused", "deviation_pct", "distance_m"):
+            im.pop(key)
+    base["methods"]["fcm"] = _block("fcm", {}, [], [], 0)
+    base["scale"] = dict(base["methods"]["pcm"])
+    for key in ("diagnostics", "warnings"):
+        base.pop(key)
+    report = annotate(base)
+    html = render_html(report, tmp_path)
+    assert check_html(html, report) == []
+    assert 'data-plot="per-laser"' in html
+    assert report["diagnostics"]["per_laser"] == {}
+    assert "(parallel laser pair)" in html
+
+
 # --------------------------------------------------------------------------- derived numbers
 
 
@@ -419,7 +438,10 @@ def test_warnings_in_plain_words() -> None:
     )
     codes = _codes(report)
     (laser_msg,) = codes["laser_deviation"]
-    assert laser_msg.startswith("Laser L3 disagrees with the others by +1.")
+    # L3 is 2.1 % high in 4 images (noise 0.2 % per laser): vs. the other three lasers
+    vs = report["diagnostics"]["per_laser"]["L3"]["median_vs_others_pct"]
+    assert vs == pytest.approx(2.1, abs=0.35)
+    assert laser_msg.startswith(f"Laser L3 disagrees with the other lasers by {vs:+.1f} %")
     assert "in 4 of 6 images" in laser_msg and "calibration" in laser_msg
     assert (
         "1 of 7 laser images gave no estimate: dive_006.jpg (only 12 inliers"
@@ -439,6 +461,19 @@ def test_few_images_warns_wide_interval() -> None:
     report = make_report(n_images=3, failed=1, outlier=False)
     (msg,) = _codes(report)["few_images"]
     assert msg.startswith("Only 2 images gave the FCM scale: the interval")
+
+
+def test_single_rejected_estimate_is_a_note() -> None:
+    report = make_report(failed=0, outlier=False)
+    reason = "inconsistent with the image's other fcm estimates (4.2 sigma)"
+    report["methods"]["fcm"]["rejected"].append(
+        {"image": "dive_002.jpg", "laser": "L4", "reason": reason}
+    )
+    report["scale"] = dict(report["methods"]["fcm"])
+    annotate(report)
+    (w,) = report["warnings"]
+    assert w["level"] == "note"
+    assert w["message"] == f"1 FCM estimate left out: L4 in dive_002.jpg: {reason}."
 
 
 def test_headline_outlier_image_is_warned() -> None:
@@ -531,6 +566,15 @@ def test_rejected_laser_is_red_on_the_overlay() -> None:
     ring = img[y, x - 1 : x + 2].astype(int)
     red = np.array([0x2B, 0x39, 0xC0])  # WARNING_HEX in BGR
     assert np.min(np.abs(ring - red).sum(axis=1)) < 60
+
+
+def test_overlay_names_do_not_collide() -> None:
+    from sfm_laserscale.report.writer import _overlay_name
+
+    taken = {"overlays/img_001.jpg"}
+    assert _overlay_name("a/img_001.png", set()) == "img_001.jpg"
+    assert _overlay_name("b/img_001.jpg", taken) == "img_001_2.jpg"
+    assert _overlay_name("c/img_001.tif", taken | {"overlays/img_001_2.jpg"}) == "img_001_3.jpg"
 
 
 # --------------------------------------------------------------------------- a real run

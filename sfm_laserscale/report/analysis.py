@@ -104,13 +104,29 @@ def per_laser_summary(
         if not devs:
             continue
         values = [d for _, d in devs]
+        others = [v for v in (_vs_others_pct(im, laser) for im, _ in devs) if v is not None]
         out[laser] = {
             "n_images": len(devs),
             "median_deviation_pct": float(statistics.median(values)),
             "max_abs_deviation_pct": float(max(abs(v) for v in values)),
+            "median_vs_others_pct": float(statistics.median(others)) if others else None,
             "n_flagged": sum(_flagged(im, laser, d, opt) for im, d in devs),
         }
     return out
+
+
+def _vs_others_pct(image: dict[str, Any], laser: str) -> float | None:
+    """A laser's FCM estimate vs. the mean of the image's other usable FCM estimates (%)."""
+    fcm = [
+        e
+        for e in image["estimates"]
+        if e["method"] == "fcm" and not e["rejected"] and _finite(e["scale"])
+    ]
+    own = [e["scale"] for e in fcm if e["laser"] == laser]
+    rest = [e["scale"] for e in fcm if e["laser"] != laser]
+    if not own or not rest:
+        return None
+    return 100.0 * (own[0] / statistics.fmean(rest) - 1.0)
 
 
 def image_spread_pct(block: dict[str, Any]) -> float | None:
@@ -245,17 +261,55 @@ def _image_warnings(report: dict[str, Any], opt: ReportChecksOptions) -> list[di
     return out
 
 
+def _rejection_notes(report: dict[str, Any], diag: dict[str, Any]) -> list[dict[str, str]]:
+    """Single estimates of the headline method left out (images left out are warned apart)."""
+    head = report["scale"]["method"]
+    flagged = {(r["image"], r["laser"]) for r in diag["direction_residuals"]}
+    items = []
+    for im in report["images"]:
+        for e in im["estimates"]:
+            if e["method"] == head and e["rejected"] and (im["name"], e["laser"]) not in flagged:
+                items.append(f"{e['laser']} in {im['name']}: {e['reason'] or 'rejected'}")
+        f = im.get("fused", {}).get(head)
+        if f is not None and f["used"]:
+            items += [
+                f"{r['laser']} in {im['name']}: {r['reason']}"
+                for r in f["rejected"]
+                if not any(
+                    e["method"] == head and e["laser"] == r["laser"] and e["rejected"]
+                    for e in im["estimates"]
+                )
+            ]
+    if not items:
+        return []
+    more = f" and {len(items) - 5} more" if len(items) > 5 else ""
+    label = _label(head)
+    return [
+        _w(
+            "note",
+            "estimates_rejected",
+            f"{len(items)} {label} estimate{'s' if len(items) > 1 else ''} left out: "
+            f"{'; '.join(items[:5])}{more}.",
+        )
+    ]
+
+
 def _laser_warnings(report: dict[str, Any], diag: dict[str, Any]) -> list[dict[str, str]]:
     out = []
     for laser, st in diag["per_laser"].items():
         k, n = st["n_flagged"], st["n_images"]
         if k >= 1 and 2 * k >= n:
+            vs = st["median_vs_others_pct"]
+            by = (
+                f"the other lasers by {vs:+.1f} %"
+                if vs is not None
+                else f"its images' estimates by {st['median_deviation_pct']:+.1f} %"
+            )
             out.append(
                 _w(
                     "warning",
                     "laser_deviation",
-                    f"Laser {laser} disagrees with the others by "
-                    f"{st['median_deviation_pct']:+.1f} % (median) and is off in {k} of "
+                    f"Laser {laser} disagrees with {by} (median) and is off in {k} of "
                     f"{n} images: check its calibration and its spot detection.",
                 )
             )
@@ -312,6 +366,7 @@ def warnings(
         _scale_warnings(report, opt)
         + _image_warnings(report, opt)
         + _laser_warnings(report, diag)
+        + _rejection_notes(report, diag)
         + _check_warnings(report, opt)
     )
 

@@ -19,8 +19,8 @@ from jinja2 import Environment, PackageLoader, StrictUndefined, select_autoescap
 from markupsafe import Markup
 
 from sfm_laserscale.report import format as fm
-from sfm_laserscale.report.analysis import METHOD_LABELS, METHOD_ORDER
-from sfm_laserscale.report.plots import methods_plot, per_laser_plot
+from sfm_laserscale.report.analysis import METHOD_LABELS, METHOD_ORDER, annotate
+from sfm_laserscale.report.plots import methods_plot, per_laser_method, per_laser_plot
 from sfm_laserscale.report.style import laser_color_hex
 
 logger = logging.getLogger(__name__)
@@ -107,6 +107,8 @@ def _environment() -> Environment:
 
 def render_html(report: dict[str, Any], out_dir: Path) -> str:
     """The HTML report for people; every number comes from ``report`` (report.json's dict)."""
+    if "diagnostics" not in report:  # a report.json written before the derived keys existed
+        report = annotate(json.loads(json.dumps(report)))
     plots = {"per_laser": per_laser_plot(report), "methods": methods_plot(report)}
     methods = [m for m in METHOD_ORDER if m in report["methods"]]
     methods += [m for m in report["methods"] if m not in methods]
@@ -125,6 +127,7 @@ def render_html(report: dict[str, Any], out_dir: Path) -> str:
             colors={name: laser_color_hex(i) for i, name in enumerate(lasers)},
             pairs=["+".join(p) for p in report["rig"]["pairs"]],
             find=find,
+            plot_method=per_laser_method(report),
         )
     )
 

@@ -107,7 +107,7 @@ def _draw(ax: Axes, points: list[_Point], extra: list[Any], fmt: str) -> None:
         ax.set_ylim(*lim)
 
 
-def _per_laser_method(report: dict[str, Any]) -> str | None:
+def per_laser_method(report: dict[str, Any]) -> str | None:
     """FCM when any image has an FCM estimate, else PCM (one pair per 'laser')."""
     for method in ("fcm", "pcm"):
         if any(e["method"] == method for im in report["images"] for e in im["estimates"]):
@@ -213,24 +213,40 @@ def _names(report: dict[str, Any], images: list[dict[str, Any]], method: str) ->
     ]
 
 
+def _deviation_panel(ax: Axes, dev: list[_Point], report: dict[str, Any]) -> None:
+    """Each laser's deviation (%) from its image's estimate; dotted lines at the flag limit."""
+    lim = report.get("diagnostics", {}).get("thresholds", {}).get("laser_deviation_min_pct")
+    ax.axhline(0.0, color="0.15", lw=1.0)
+    if _finite(lim):
+        for y in (-lim, lim):
+            ax.axhline(y, color="0.45", lw=0.9, ls=":")
+    _draw(ax, dev, [-lim, lim] if _finite(lim) else [0.0], "{:+.2f} %")
+    ax.set_ylabel("deviation from image (%)")
+    ax.grid(axis="y", alpha=0.3)
+
+
 def per_laser_plot(report: dict[str, Any]) -> bytes | None:
     """The paper's per-laser plot: per image each laser's estimate (circles), the image's
     estimate (cross), the fused scale (dashed) and its 95 % band; below, each laser's
     deviation (%) from its image's estimate. None when nothing can be plotted."""
-    method = _per_laser_method(report)
+    method = per_laser_method(report)
     if method is None:
         return None
     images = [im for im in report["images"] if any(e["method"] == method for e in im["estimates"])]
     names = _names(report, images, method)
     with plt.rc_context(_RC):
-        fig, (ax, ax_dev) = plt.subplots(
-            2,
-            1,
-            figsize=(10.0, 6.2),
-            sharex=True,
-            gridspec_kw={"height_ratios": [3, 2]},
-            layout="constrained",
-        )
+        if method == "fcm":
+            fig, (ax, ax_dev) = plt.subplots(
+                2,
+                1,
+                figsize=(10.0, 6.2),
+                sharex=True,
+                gridspec_kw={"height_ratios": [3, 2]},
+                layout="constrained",
+            )
+        else:  # one pair per image: the pair IS the image estimate, no deviation panel
+            fig, ax = plt.subplots(figsize=(10.0, 3.8), layout="constrained")
+            ax_dev = None
         block = report["methods"].get(method, {})
         _band(ax, block, f"fused {METHOD_LABELS[method]}")
         top, dev = _laser_points(report, images, method, names)
@@ -245,15 +261,9 @@ def per_laser_plot(report: dict[str, Any]) -> bytes | None:
             loc="upper left",
             bbox_to_anchor=(1.01, 1.0),
         )
-        lim = report.get("diagnostics", {}).get("thresholds", {}).get("laser_deviation_min_pct")
-        ax_dev.axhline(0.0, color="0.15", lw=1.0)
-        if _finite(lim):
-            for y in (-lim, lim):
-                ax_dev.axhline(y, color="0.45", lw=0.9, ls=":")
-        _draw(ax_dev, dev, [-lim, lim] if _finite(lim) else [0.0], "{:+.2f} %")
-        ax_dev.set_ylabel("deviation from image (%)")
-        ax_dev.grid(axis="y", alpha=0.3)
-        _image_ticks(ax_dev, [im["name"] for im in images])
+        if ax_dev is not None:
+            _deviation_panel(ax_dev, dev, report)
+        _image_ticks(ax if ax_dev is None else ax_dev, [im["name"] for im in images])
         return _png(fig)
 
 

@@ -213,6 +213,16 @@ def _overlay_labels(image: dict[str, Any]) -> tuple[dict[str, float], dict[str, 
     return scales, rejected
 
 
+def _overlay_name(image: str, taken: set[str]) -> str:
+    """``<stem>.jpg``, or ``<stem>_2.jpg``… when images of two folders share a stem."""
+    stem = Path(image).stem
+    name, k = f"{stem}.jpg", 1
+    while f"overlays/{name}" in taken:
+        k += 1
+        name = f"{stem}_{k}.jpg"
+    return name
+
+
 def _write_overlays(
     out: Path,
     runs: Sequence[ImageRun],
@@ -241,7 +251,7 @@ def _write_overlays(
             options.detection.max_range_m,
             rejected=rejected,
         )
-        name = Path(run.name).stem + ".jpg"
+        name = _overlay_name(run.name, set(written.values()))
         cv2.imwrite(str(folder / name), img, [cv2.IMWRITE_JPEG_QUALITY, 88])
         written[run.name] = f"overlays/{name}"
     return written

@@ -41,6 +41,16 @@ and leaves the estimator's bias, measurable per view from one pair.
 
 Camera: PINHOLE 1920 × 1080, f = 1500 px (principal point at the centre) — the paper's camera
 parameters are not given in our sources; FCM's spread scales as depth / (f · ‖O_L‖).
+
+Reported methods (results.json, per setting): ``fcm`` / ``pcm`` / ``direct3d`` single estimates
+(pooled, and per laser / pair as ``fcm:L1`` …); ``<m>_fused``: ``fusion.fuse`` of one view, with
+the σ and interval the pipeline reports; ``<m>_fused_gls``: the same value with the σ before the
+Birge inflation (interval ±1.96 σ); ``pcm_joint``: ``estimate_pcm_joint`` over ``group_size``
+views; ``pcm_group``: the midpoint PCM fused over the same views; ``pcm_joint_view``: each
+view's scale with the jointly fitted beam direction; ``davis_tusting``. ``fcm_checked``,
+``fcm_fused_checked``, ``pcm_checked``: the same with spots failing :func:`edge_check` dropped
+(a proposed check, not in ``scale``). PCM-joint is not run in the noise table (identical views
+leave the beam direction undetermined).
 """
 
 from __future__ import annotations
@@ -213,6 +223,7 @@ class SimulationOptions:
     max_angle_deg: float = 40.0
     angle_step_deg: float = 5.0
     area_radius_m: float = 0.5
+    areas: tuple[str, ...] = AREAS  # grid mode: which areas
     antithetic: bool = False
     camera: Camera = field(default_factory=default_camera)
     true_scale: float = 1.0  # metres per model unit
@@ -239,6 +250,8 @@ class SimulationOptions:
             raise InputError("noise sigmas must be finite and >= 0 pixels")
         if not 0 <= self.outlier_ratio < 0.9:
             raise InputError(f"outlier ratio must be in [0, 0.9), got {self.outlier_ratio}")
+        if not self.areas or any(a not in AREAS for a in self.areas):
+            raise InputError(f"areas must be among {', '.join(AREAS)}, got {self.areas}")
         if self.n_points < 10 or self.group_size < 3 or self.workers < 1:
             raise InputError("need n_points >= 10, group_size >= 3 and workers >= 1")
         if not (0 < self.max_angle_deg < 80 and self.angle_step_deg > 0 and self.true_scale > 0
@@ -488,7 +501,7 @@ def grid_jobs(scene: SimScene, options: SimulationOptions) -> list[ViewJob]:
     jobs: list[ViewJob] = []
     angles = grid_angles(options)
     i = 0
-    for area in AREAS:
+    for area in options.areas:
         a = scene.areas[area]
         for d in options.distances_m:
             for sf in options.resolved("sigma_f"):
@@ -539,10 +552,13 @@ def random_jobs(scene: SimScene, caster: MeshRaycaster, options: SimulationOptio
     tree = cKDTree(scene.samples @ scene.basis.T)
     dists = options.distances_m
     jobs: list[ViewJob] = []
-    i = n = 0
+    i = n = misses = 0
     while n < options.resolved("trials"):
         view = _random_view(scene, caster, tree, rng, options)
         if view is None:
+            misses += 1
+            if misses > 1000 + 10 * n:
+                raise InputError("random views: the mesh's central half has too little surface")
             continue
         target, normal, pitch, roll = view
         d = dists[n % len(dists)]
@@ -707,7 +723,8 @@ def _fused_tuple(f: FusedScale) -> tuple[float, float, float, float, float]:
 def edge_check(caster: MeshRaycaster, camera: Camera, pose: Pose, hit: SpotHit) -> bool:
     """True when the spot's first-order σ cannot hold: rays ``EDGE_RING_SIGMA`` σ around the
     spot meet the mesh off the hit's tangent plane by more than ``EDGE_TOLERANCE`` × the range
-    change the plane predicts (a depth edge, a crest seen edge-on, an occlusion boundary).
+    change the plane predicts and more than the ring's radius at the hit's range (a depth edge,
+    a crest seen edge-on, an occlusion boundary; creases between facets stay well below).
 
     Not part of ``scale`` (a proposal): the estimates are reported with and without it.
     """
@@ -725,7 +742,8 @@ def edge_check(caster: MeshRaycaster, camera: Camera, pose: Pose, hit: SpotHit) 
     t_mesh = np.where(res.hit, res.distance, np.inf)
     nonlinear = float(np.max(np.abs(t_mesh - t_plane)))
     linear = float(np.max(np.abs(t_plane - t0)))
-    return not nonlinear <= EDGE_TOLERANCE * linear + 1e-9 * t0
+    radius = EDGE_RING_SIGMA * hit.sigma_px * t0 / camera.focal_px  # ring on a facing plane
+    return not nonlinear <= max(EDGE_TOLERANCE * linear, radius)
 
 
 def _checked(ctx: TrialContext, setting: LaserSetting, obs: ImageObservation,
@@ -1441,11 +1459,13 @@ def _summary_line(results: dict[str, Any], seconds: float) -> str:
     return "\n".join(parts)
 
 
-def simulate(inputs: SimulationInputs, options: SimulationOptions) -> SimulationResult:
-    """Run the experiments of ``options.mode`` (no files written)."""
+def simulate(inputs: SimulationInputs, options: SimulationOptions,
+             prepared: tuple[SimScene, MeshRaycaster] | None = None) -> SimulationResult:
+    """Run the experiments of ``options.mode`` (no files written). ``prepared``: a scene from
+    :func:`load_scene` / :func:`build_scene` with the same ``true_scale`` (else it is loaded)."""
     timings: dict[str, float] = {}
     t_all = t0 = time.perf_counter()
-    scene, caster = load_scene(inputs, options)
+    scene, caster = prepared if prepared is not None else load_scene(inputs, options)
     settings = load_settings(inputs, options)
     timings["scene"] = time.perf_counter() - t0
     t0 = time.perf_counter()
