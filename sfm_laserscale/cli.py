@@ -33,7 +33,7 @@ class GreedyCommand(click.Command):
     ``--opt a --opt b --opt c`` (a ``multiple=True`` option) before parsing.
     """
 
-    greedy = ("--laser-images",)
+    greedy: tuple[str, ...] = ("--laser-images",)
 
     def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
         out: list[str] = []
