@@ -52,6 +52,7 @@ import pycolmap
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
+from tqdm import tqdm
 
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.model import (
@@ -412,7 +413,9 @@ def features_from_images(
     if isinstance(options, RegistrationOptions):
         options = options.tie
     out: dict[str, ObservationFeatures] = {}
-    for name, pixels in images.items():
+    # Progress bar only on a terminal (disable=None): re-extraction takes seconds per image.
+    for name, pixels in tqdm(images.items(), total=len(images), desc="model image SIFT",
+                             unit="img", disable=None, leave=False):
         image = model.image_by_name(name)
         if image is None:
             raise InputError("not an image of the sparse model", path=name)
