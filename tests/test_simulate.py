@@ -193,6 +193,9 @@ def test_reported_sigma_matches_the_monte_carlo_spread(noise_cells, config: str)
         assert v["n"] >= TRIALS * 0.95, name
         assert RATIO[0] <= v["ratio"] <= RATIO[1], (name, v)
         assert COVER[0] <= v["coverage95"] <= COVER[1], (name, v)
+    # pooled over the lasers (n = 4 × TRIALS): the DESIGN §7 targets, with sampling margins
+    pooled = m["fcm"]
+    assert 0.88 <= pooled["ratio"] <= 1.14 and 0.92 <= pooled["coverage95"] <= 0.98, pooled
     # FCM unbiased: mean normalised error within 0.1 + 3 standard errors of 0
     for name in ["fcm", *[k for k in lasers if k.startswith("fcm:")]]:
         assert abs(m[name]["z_mean"]) < 0.1 + 3 / np.sqrt(m[name]["n"]), (name, m[name])
@@ -227,15 +230,19 @@ def test_sigma_is_calibrated_on_tilted_views_and_rough_terrain(tilted, config: s
 
 def test_fcm_is_unbiased_at_every_view_antithetic_pairs(seafloor) -> None:
     """The mean of a draw and its negation cancels the first-order error: what is left is the
-    estimator's bias at that view, below a tenth of its σ at every view and configuration."""
+    estimator's bias at that view plus a second-order term of the draw (≈ 0.1 σ for a 3σ
+    draw). FCM: below a tenth of its σ at every view, configuration and area; typically
+    < 0.01 σ. (Per-view fusions can differ between twins when the within-image rejection
+    flips, so they are checked on average.)"""
     opts = SimulationOptions(mode="grid", distances_m=(2.0,), trials=1, angle_step_deg=40.0,
                              antithetic=True, progress=False)
     res = simulate(SimulationInputs(), opts, seafloor)
     for s in res.results["settings"]:
-        for name in ("fcm_checked", "fcm_fused_checked"):
-            v = s["methods"][name]
-            assert v["n_pairs"] >= 9, (s["setting"], name)
-            assert v["pair_bias_max_sigma"] < 0.1, (s["setting"], name, v)
+        fcm, fused = s["methods"]["fcm_checked"], s["methods"]["fcm_fused_gls"]
+        assert fcm["n_pairs"] >= 30 and fused["n_pairs"] == 9, s["setting"]
+        assert fcm["pair_bias_max_sigma"] < 0.1, (s["setting"], fcm)
+        assert fcm["pair_bias_mean_sigma"] < 0.02, (s["setting"], fcm)
+        assert fused["pair_bias_mean_sigma"] < 0.05, (s["setting"], fused)
 
 
 # --------------------------------------------------------------------------- outputs, CLI

@@ -58,7 +58,9 @@ def _heatmap_axes(fig: Any, ax: Any, arr: F64 | None, ext: tuple[float, ...],
     if arr is None:
         ax.axis("off")
         return
-    lim = float(np.nanmax(np.abs(arr))) if np.isfinite(arr).any() else 1.0
+    # robust colour range: a single edge-spot cell would wash out the rest (it saturates)
+    lim = float(np.nanpercentile(np.abs(arr), 98)) if np.isfinite(arr).any() else 1.0
+    lim = lim if lim > 0 else 1.0
     im = ax.imshow(arr.T, origin="lower", extent=ext, cmap="RdBu_r", vmin=-lim, vmax=lim,
                    interpolation="nearest")
     cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03, ticks=[-lim, 0.0, lim],
@@ -69,35 +71,54 @@ def _heatmap_axes(fig: Any, ax: Any, arr: F64 | None, ext: tuple[float, ...],
     ax.set_yticks(ticks, [f"{t:g}" for t in ticks] if first[0] else [], fontsize=6)
 
 
+BASELINES = ("direct3d", "davis_tusting")
+
+
+def _boxes(ax: Any, errors: Mapping[str, Mapping[float, F64]], methods: Sequence[str],
+           labels: Mapping[str, str]) -> None:
+    """One box per method and distance (boxes 25–75 %, whiskers 2.5–97.5 %)."""
+    dists = sorted({d for m in methods for d in errors[m]})
+    width = 0.8 / max(len(dists), 1)
+    cmap = plt.get_cmap("viridis")
+    for k, d in enumerate(dists):
+        colour = cmap(k / max(len(dists) - 1, 1))
+        keep = [i for i, m in enumerate(methods) if len(errors[m].get(d, ()))]
+        pos = np.arange(len(methods)) + (k - (len(dists) - 1) / 2) * width
+        if keep:
+            bp = ax.boxplot([errors[methods[i]][d] for i in keep], positions=pos[keep],
+                            widths=width * 0.9, showfliers=False, patch_artist=True,
+                            whis=(2.5, 97.5))
+            for patch in bp["boxes"]:
+                patch.set_facecolor(colour)
+                patch.set_alpha(0.6)
+        ax.plot([], [], "s", color=colour, label=f"{d:g} m")
+    ax.axhline(0, color="k", lw=0.8)
+    ax.set_xticks(range(len(methods)), [labels[m] for m in methods], fontsize=7, rotation=15)
+    ax.grid(alpha=0.3)
+
+
 def error_boxes_png(errors: Mapping[str, Mapping[str, Mapping[float, F64]]],
                     labels: Mapping[str, str], title: str) -> bytes:
-    """Panels = areas; per method, one box per distance (error in % of the scale)."""
+    """Rows = areas; per method one box per distance (error in % of the scale); the baselines
+    (Direct 3D, Davis & Tusting) on their own axis, their errors are 10–100× larger."""
     panels = list(errors)
-    fig, axes = plt.subplots(len(panels), 1, squeeze=False, figsize=(9, 2.9 * len(panels) + 0.4))
-    for ax, panel in zip(axes[:, 0], panels, strict=True):
-        methods = [m for m in labels if m in errors[panel]]
-        dists = sorted({d for m in methods for d in errors[panel][m]})
-        width = 0.8 / max(len(dists), 1)
-        for k, d in enumerate(dists):
-            data = [errors[panel][m].get(d, np.zeros(0)) for m in methods]
-            pos = np.arange(len(methods)) + (k - (len(dists) - 1) / 2) * width
-            keep = [i for i, x in enumerate(data) if len(x)]
-            if not keep:
+    fig = plt.figure(figsize=(10, 3.0 * len(panels) + 0.4))
+    grid = fig.add_gridspec(len(panels), 2, width_ratios=[4, 1.3])
+    for row, panel in enumerate(panels):
+        ours = [m for m in labels if m in errors[panel] and m not in BASELINES]
+        base = [m for m in labels if m in errors[panel] and m in BASELINES]
+        for col, methods in enumerate((ours, base)):
+            if not methods:
                 continue
-            bp = ax.boxplot([data[i] for i in keep], positions=pos[keep], widths=width * 0.9,
-                            showfliers=False, patch_artist=True, whis=(2.5, 97.5))
-            for patch in bp["boxes"]:
-                patch.set_facecolor(plt.get_cmap("viridis")(k / max(len(dists) - 1, 1)))
-                patch.set_alpha(0.6)
-            ax.plot([], [], "s", color=plt.get_cmap("viridis")(k / max(len(dists) - 1, 1)),
-                    label=f"{d:g} m")
-        ax.axhline(0, color="k", lw=0.8)
-        ax.set_xticks(range(len(methods)), [labels[m] for m in methods], fontsize=7,
-                      rotation=15)
-        ax.set_ylabel("error (%)", fontsize=8)
-        ax.set_title(f"{title} — {panel} (boxes 25–75 %, whiskers 2.5–97.5 %)", fontsize=9)
-        ax.legend(fontsize=7)
-        ax.grid(alpha=0.3)
+            ax = fig.add_subplot(grid[row, col])
+            _boxes(ax, errors[panel], methods, labels)
+            if col == 0:
+                ax.set_ylabel("error (%)", fontsize=8)
+                ax.set_title(f"{title} — {panel} (boxes 25–75 %, whiskers 2.5–97.5 %)",
+                             fontsize=9)
+                ax.legend(fontsize=7)
+            else:
+                ax.set_title("baselines", fontsize=9)
     fig.tight_layout()
     return _png(fig)
 
@@ -139,7 +160,8 @@ def calibration_png(z: Mapping[str, F64], labels: Mapping[str, str], title: str)
 
 # --------------------------------------------------------------------------- from a result
 
-HEATMAP_METHODS = ("fcm_fused", "fcm", "pcm", "pcm_joint_view", "direct3d", "davis_tusting")
+HEATMAP_METHODS = ("fcm_fused", "fcm_checked", "pcm", "pcm_joint_view", "direct3d",
+                   "davis_tusting")
 BOX_METHODS = ("fcm", "fcm_fused", "pcm", "pcm_joint", "pcm_joint_view", "direct3d",
                "davis_tusting")
 Z_METHODS = ("fcm", "fcm_fused", "pcm", "pcm_joint")
@@ -179,18 +201,29 @@ def _error_figures(result: SimulationResult, a: dict[str, NDArray[Any]]) -> dict
 
 
 def _scatter_figures(result: SimulationResult, a: dict[str, NDArray[Any]]) -> dict[str, bytes]:
-    t, opts = result.collected.table, result.options
+    """PCM and PCM-joint error against the depth difference; with antithetic draws, the
+    means of the twins (the systematic error of each view, noise cancelled to first order)."""
+    from sfm_laserscale.synthetic.simulate import antithetic_pairs
+
+    opts = result.options
+    what = "antithetic pair means" if opts.antithetic else "single draws"
     out = {}
-    for config in sorted({k.config for k in t.keys}):
+    for config in sorted({k.config for k in result.collected.table.keys}):
         series = {}
         for m, label in (("pcm", "PCM (midpoint)"),
                          ("pcm_joint_view", f"PCM-joint direction ({opts.group_size} views)")):
             rows = _rows(result, a, m, config=config) & np.isfinite(a["depth"])
-            if rows.any():
-                series[label] = (a["depth"][rows], 100 * (a["value"][rows] / opts.true_scale - 1))
+            if opts.antithetic:
+                p, q = antithetic_pairs(a, rows)
+                value, depth = 0.5 * (a["value"][p] + a["value"][q]), a["depth"][p]
+            else:
+                value, depth = a["value"][rows], a["depth"][rows]
+            if len(value):
+                series[label] = (depth, 100 * (value / opts.true_scale - 1))
         if series:
             out[f"pcm_depth_{config}.png"] = depth_scatter_png(
-                series, f"configuration {config}: PCM error against the hits' depth difference")
+                series, f"configuration {config}: PCM error against the hits' depth difference "
+                        f"({what})")
     return out
 
 

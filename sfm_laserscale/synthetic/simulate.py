@@ -845,7 +845,9 @@ Mapper = Callable[[Callable[[Any], Any], Sequence[Any]], Iterator[Any]]
 def worker_pool(caster: MeshRaycaster, settings: tuple[LaserSetting, ...],
                 options: SimulationOptions, n_jobs: int) -> Iterator[Mapper]:
     """An ordered ``map`` for trials and groups: in this process, or in ``options.workers``
-    spawned processes (each builds its own ray caster once)."""
+    spawned processes (each builds its own ray caster once). Spawned processes import the
+    caller's main module: a script calling this with workers > 1 needs the usual
+    ``if __name__ == "__main__":`` guard (without it the pool never starts)."""
     global _WORKER
     if options.workers == 1 or n_jobs < 8 * options.workers:
         previous = _WORKER
@@ -1173,18 +1175,28 @@ def method_stats(value: F64, sigma: F64, lo: F64, hi: F64, truth: float) -> dict
     }
 
 
+def antithetic_pairs(a: dict[str, NDArray[Any]], rows: NDArray[np.bool_]
+                     ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Row indices (plus, minus) of the antithetic twins among ``rows`` (same key, view, draw,
+    laser or pair; both present)."""
+    plus: dict[tuple[int, int, int, int], int] = {}
+    minus: dict[tuple[int, int, int, int], int] = {}
+    for i in np.flatnonzero(rows):
+        k = (int(a["key"][i]), int(a["view"][i]), int(a["round"][i]), int(a["sub"][i]))
+        (plus if a["sign"][i] > 0 else minus)[k] = int(i)
+    both = [k for k in plus if k in minus]
+    return (np.array([plus[k] for k in both], dtype=np.int64),
+            np.array([minus[k] for k in both], dtype=np.int64))
+
+
 def pair_bias(a: dict[str, NDArray[Any]], rows: NDArray[np.bool_], truth: float
               ) -> tuple[float, float, int]:
     """Antithetic pairs: max and mean of |pair-mean error| / σ, and the number of pairs."""
-    idx = np.flatnonzero(rows & np.isfinite(a["sigma"]))
-    by: dict[tuple[int, int, int], dict[int, tuple[float, float]]] = defaultdict(dict)
-    for i in idx:
-        by[(int(a["view"][i]), int(a["round"][i]), int(a["sub"][i]))][int(a["sign"][i])] = (
-            float(a["value"][i]), float(a["sigma"][i]))
-    b = [abs(0.5 * (p[1][0] + p[-1][0]) - truth) / (0.5 * (p[1][1] + p[-1][1]))
-         for p in by.values() if 1 in p and -1 in p]
-    if not b:
+    p, m = antithetic_pairs(a, rows & np.isfinite(a["sigma"]))
+    if len(p) == 0:
         return float("nan"), float("nan"), 0
+    b = np.abs(0.5 * (a["value"][p] + a["value"][m]) - truth) / (
+        0.5 * (a["sigma"][p] + a["sigma"][m]))
     return float(np.max(b)), float(np.mean(b)), len(b)
 
 
@@ -1196,6 +1208,12 @@ def _stats_for(a: dict[str, NDArray[Any]], rows: NDArray[np.bool_], options: Sim
         mx, mean, n = pair_bias(a, rows, k)
         out.update(pair_bias_max_sigma=mx, pair_bias_mean_sigma=mean, n_pairs=n)
     return out
+
+
+def _counts(col: Collected, key: SettingKey, prefix: str) -> dict[str, int]:
+    """Per laser, how often a counter starting with ``prefix`` fired for this setting."""
+    return {name[len(prefix):]: n for (k, name), n in col.rejected.items()
+            if k == key and name.startswith(prefix)}
 
 
 def summarize(col: Collected, options: SimulationOptions) -> list[dict[str, Any]]:
@@ -1214,11 +1232,10 @@ def summarize(col: Collected, options: SimulationOptions) -> list[dict[str, Any]
             for sub in subs if len(subs) > 1 else []:
                 sub_rows = rows & (a["sub"] == t.code(sub))
                 methods[f"{m}:{sub}"] = _stats_for(a, sub_rows, options)
-        spots = {name.split(":", 1)[1]: n for (k2, name), n in col.rejected.items()
-                 if k2 == key and name.startswith("spot:")}
         out.append({"setting": key._asdict(), "methods": methods,
                     "registration_failures": col.rejected[(key, "registration")],
-                    "spots_not_visible": spots})
+                    "spots_not_visible": _counts(col, key, "spot:"),
+                    "edge_spots": _counts(col, key, "edge:")})
     return out
 
 
@@ -1241,7 +1258,7 @@ def overall(col: Collected, options: SimulationOptions) -> dict[str, dict[str, A
 
 
 #: Methods drawn in the grid heatmaps.
-MAP_METHODS = ("fcm_fused", "fcm", "pcm", "pcm_joint_view", "direct3d", "davis_tusting")
+MAP_METHODS = ("fcm_fused", "fcm_checked", "pcm", "pcm_joint_view", "direct3d", "davis_tusting")
 
 
 def grid_maps(col: Collected, options: SimulationOptions
