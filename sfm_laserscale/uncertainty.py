@@ -289,7 +289,7 @@ def _outputs(lay: _Layout, x: F64, drig: F64) -> F64:
     return np.concatenate([s, resid, pcm * factor, d3 * factor], axis=1).reshape(len(x), -1)
 
 
-def _pose_sqrt(obs: ImageObservation) -> F64:
+def pose_sqrt(obs: ImageObservation) -> F64:
     """(6, m) square root of the pose covariance (zero directions dropped)."""
     cov = obs.pose_covariance
     if cov is None:
@@ -326,7 +326,7 @@ def _jacobian(lay: _Layout, obs: ImageObservation, options: EstimationOptions
               ) -> tuple[F64, NDArray[np.intp], F64, F64]:
     """J·D (n_out, n) by central differences along D's columns, rig index per column, and the
     nominal camera-frame hits (K, 3) with their |cos| incidence (K,)."""
-    d, rig_idx = _directions(lay, _pose_sqrt(obs))
+    d, rig_idx = _directions(lay, pose_sqrt(obs))
     h = options.fd_step_sigma
     deltas = np.vstack([np.zeros(d.shape[0]), h * d.T, -h * d.T])  # (1 + 2n, P), row 0 nominal
     k = len(lay.names)

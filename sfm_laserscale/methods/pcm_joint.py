@@ -71,6 +71,7 @@ from sfm_laserscale.uncertainty import (
     ImageObservation,
     estimate_image,
     perturb_poses,
+    pose_sqrt,
 )
 
 logger = logging.getLogger(__name__)
@@ -150,22 +151,6 @@ class _ImageData:
         return slice(3 * k, 3 * k + 3)
 
 
-def _pose_sqrt(obs: ImageObservation) -> F64:
-    """(6, m) square root of the pose covariance (zero directions dropped)."""
-    cov = obs.pose_covariance
-    if cov is None:
-        return np.zeros((6, 0))
-    cov = np.asarray(cov, dtype=np.float64)
-    if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
-        raise InputError(f"image {obs.image}: pose covariance must be a finite 6×6 matrix")
-    vals, vecs = np.linalg.eigh(0.5 * (cov + cov.T))
-    top = max(float(vals.max()), 1e-300)
-    if vals.min() < -1e-9 * top:
-        raise InputError(f"image {obs.image}: pose covariance is not positive semi-definite")
-    keep = vals > 1e-14 * top
-    return np.asarray(vecs[:, keep] * np.sqrt(vals[keep]), dtype=np.float64)
-
-
 def _check_hits(obs: ImageObservation, rig: Rig) -> None:
     names = [h.laser for h in obs.hits]
     for name in names:
@@ -192,7 +177,7 @@ def _image_data(obs: ImageObservation, rig: Rig, h: float) -> _ImageData | None:
     with np.errstate(divide="ignore", invalid="ignore"):
         nw = nw / np.linalg.norm(nw, axis=1, keepdims=True)
     px_sigma = np.repeat([float(x.sigma_px) for x in hits], 2)
-    root = _pose_sqrt(obs)
+    root = pose_sqrt(obs)
     d = np.zeros((2 * k + 6, 2 * k + root.shape[1]))
     d[np.arange(2 * k), np.arange(2 * k)] = px_sigma
     d[2 * k:, 2 * k:] = root
