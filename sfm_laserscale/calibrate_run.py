@@ -1,6 +1,7 @@
-"""`sfm-laserscale calibrate`: laser rig calibration from images of a chessboard target.
+"""`sfm-laserscale calibrate`: laser rig calibration from images of a chessboard or ChArUco target.
 
-Per image: chessboard corners (OpenCV, +0.5 px to COLMAP's convention) -> target pose (PnP on
+Per image: chessboard or ChArUco corners (OpenCV, +0.5 px to COLMAP's convention; ChArUco
+corners carry ids, so partial views of the board give a pose too) -> target pose (PnP on
 undistorted corners) -> plane; laser-colour spot candidates on the board (the detector's
 candidate machinery with a provisional uncalibrated rig) -> rays -> 3D points on the plane.
 Then :func:`sfm_laserscale.calibration.calibrate_rig` tracks and fits the beams. Writes
@@ -56,8 +57,12 @@ class CalibrateInputs:
 class CalibrateOptions:
     """Target geometry, laser colours/names and the maths' settings."""
 
-    board: tuple[int, int] = (9, 6)  # inner corners (cols, rows)
+    board: tuple[int, int] = (9, 6)  # chessboard: inner corners; charuco: squares (cols, rows)
     square_m: float = 0.05
+    target: str = "chessboard"  # chessboard | charuco
+    marker_m: float | None = None  # ChArUco marker side (m); None = 0.7 square
+    dictionary: str = "DICT_5X5_100"  # ChArUco markers: a cv2.aruco predefined dictionary
+    min_corners: int = 6  # fewest ChArUco corners for a pose (partial views are fine)
     colors: tuple[str, ...] = ("red",)
     names: tuple[str, ...] | None = None  # None: L1..Ln, n = most spots seen in one image
     rig_name: str = "calibrated laser rig"
@@ -72,6 +77,16 @@ class CalibrateOptions:
         bad = [c for c in self.colors if c not in COLORS or c == "any"]
         if bad or not self.colors:
             raise InputError(f"laser colours must be red, green or blue, got {self.colors}")
+        if self.target not in ("chessboard", "charuco"):
+            raise InputError(f"target must be chessboard or charuco, got {self.target!r}")
+        if self.target == "charuco":
+            if not self.dictionary.startswith("DICT_") or not hasattr(cv2.aruco,
+                                                                      self.dictionary):
+                raise InputError(f"unknown ArUco dictionary {self.dictionary!r} (e.g. "
+                                 "DICT_5X5_100, DICT_4X4_50, DICT_6X6_250)")
+            if self.marker_m is not None and not 0 < self.marker_m < self.square_m:
+                raise InputError(f"marker size must be between 0 and the square size, got "
+                                 f"{self.marker_m} m")
         if self.names is not None and (not self.names or len(set(self.names)) != len(self.names)):
             raise InputError(f"laser names must be distinct and non-empty, got {self.names}")
 
@@ -111,11 +126,49 @@ def find_board(image_rgb: NDArray[np.uint8], board: tuple[int, int]) -> F64 | No
     return np.asarray(corners, dtype=np.float64).reshape(-1, 2) + 0.5
 
 
+def charuco_board(options: CalibrateOptions) -> cv2.aruco.CharucoBoard:
+    """The OpenCV ChArUco board of the options (squares, sizes, dictionary)."""
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, options.dictionary))
+    marker = options.marker_m if options.marker_m is not None else 0.7 * options.square_m
+    return cv2.aruco.CharucoBoard(options.board, options.square_m, marker, dictionary)
+
+
+def find_charuco(image_rgb: NDArray[np.uint8], options: CalibrateOptions
+                 ) -> tuple[F64, F64] | None:
+    """ChArUco corners seen (partial views included): ((N, 2) COLMAP px, (N, 3) board m).
+
+    None when fewer than ``options.min_corners`` corners, or only collinear ones, are found.
+    """
+    board = charuco_board(options)
+    gray = cv2.cvtColor(image_rgb, cv2.COLOR_RGB2GRAY)
+    corners, ids, _, _ = cv2.aruco.CharucoDetector(board).detectBoard(gray)
+    if corners is None or ids is None or len(ids) < options.min_corners:
+        return None
+    obj = np.asarray(board.getChessboardCorners(), dtype=np.float64)[ids.ravel()]
+    if np.linalg.matrix_rank(obj[:, :2] - obj[:, :2].mean(axis=0), tol=1e-9) < 2:
+        return None  # one row of corners: no plane
+    # OpenCV pixel centres are integers; COLMAP's are at +0.5
+    return np.asarray(corners, dtype=np.float64).reshape(-1, 2) + 0.5, obj
+
+
+def find_target(image_rgb: NDArray[np.uint8], options: CalibrateOptions
+                ) -> tuple[F64, F64] | None:
+    """The target's corners (COLMAP px) and their board points (m), or None when not found."""
+    if options.target == "charuco":
+        return find_charuco(image_rgb, options)
+    corners = find_board(image_rgb, options.board)
+    if corners is None:
+        return None
+    return corners, board_object_points(options.board[0], options.board[1], options.square_m)
+
+
 def board_polygon_px(camera: Camera, cam_from_board: Pose, board: tuple[int, int],
-                     square_m: float) -> F64:
+                     square_m: float, target: str = "chessboard") -> F64:
     """(4, 2) image outline of the board's squares plus half a square (COLMAP pixels)."""
     cols, rows = board
     lo, hi_x, hi_y = -1.5 * square_m, (cols + 0.5) * square_m, (rows + 0.5) * square_m
+    if target == "charuco":  # object points start at the board's outer corner
+        lo, hi_x, hi_y = -0.5 * square_m, (cols + 0.5) * square_m, (rows + 0.5) * square_m
     corners = np.array([[lo, lo, 0], [hi_x, lo, 0], [hi_x, hi_y, 0], [lo, hi_y, 0]])
     return camera.project(cam_from_board.transform(corners))
 
@@ -179,15 +232,18 @@ def spot_candidates(image_rgb: NDArray[np.uint8], camera: Camera, polygon_px: F6
 
 
 def observe_image(index: int, name: str, image_rgb: NDArray[np.uint8], camera: Camera,
-                  options: CalibrateOptions, corners_px: F64 | None) -> ImageObservation:
-    """Board pose and the spots' 3D points for one image (skipped when no board)."""
-    if corners_px is None:
-        return ImageObservation(name, None, skipped="chessboard target not found")
-    obj = board_object_points(options.board[0], options.board[1], options.square_m)
+                  options: CalibrateOptions, found: tuple[F64, F64] | None) -> ImageObservation:
+    """Board pose and the spots' 3D points for one image (skipped when no board).
+
+    ``found``: the target's corners (COLMAP px) and board points (m), see :func:`find_target`.
+    """
+    if found is None:
+        return ImageObservation(name, None, skipped=f"{options.target} target not found")
+    corners_px, obj = found
     pose = target_pose(corners_px, obj, camera)
     plane = plane_from_pose(pose)
-    cands = spot_candidates(image_rgb, camera, board_polygon_px(camera, pose, options.board,
-                                                                 options.square_m), options)
+    cands = spot_candidates(image_rgb, camera, board_polygon_px(
+        camera, pose, options.board, options.square_m, options.target), options)
     spots: list[SpotPoint] = []
     for xy, color in cands:
         xyz = ray_plane_points(camera.unproject(xy[None, :]), plane)[0]
@@ -199,13 +255,18 @@ def observe_image(index: int, name: str, image_rgb: NDArray[np.uint8], camera: C
 # ----------------------------------------------------------------------------- intrinsics
 
 
-def self_calibrate(corners: list[F64], size: tuple[int, int], options: CalibrateOptions
-                   ) -> Camera:
-    """OPENCV camera (COLMAP convention) from the target's corners (cv2.calibrateCamera)."""
+def self_calibrate(corners: list[F64], size: tuple[int, int], options: CalibrateOptions,
+                   objects: list[F64] | None = None) -> Camera:
+    """OPENCV camera (COLMAP convention) from the target's corners (cv2.calibrateCamera).
+
+    ``objects``: each image's (N, 3) board points; None = the full chessboard of ``options``.
+    """
     if len(corners) < 3:
         raise InputError(f"self-calibration needs the target in >= 3 images, got {len(corners)}")
-    obj = board_object_points(options.board[0], options.board[1], options.square_m)
-    objs = [obj.astype(np.float32)] * len(corners)
+    if objects is None:
+        obj = board_object_points(options.board[0], options.board[1], options.square_m)
+        objects = [obj] * len(corners)
+    objs = [o.astype(np.float32) for o in objects]
     # COLMAP -> OpenCV pixel convention (-0.5) for calibrateCamera
     imgs = [(c - 0.5).astype(np.float32).reshape(-1, 1, 2) for c in corners]
     rms, k, dist, _, _ = cv2.calibrateCamera(objs, imgs, size, None, None,
@@ -233,10 +294,10 @@ def calibrate_images(images: Mapping[str, NDArray[np.uint8]], camera: Camera | N
                      options: CalibrateOptions) -> CalibrateResult:
     """Calibrate from in-memory RGB images (name -> (H, W, 3) uint8); camera None = self-cal."""
     names = list(images)
-    corners = {n: find_board(images[n], options.board) for n in names}
+    corners = {n: find_target(images[n], options) for n in names}
     for n in names:
         if corners[n] is None:
-            logger.warning("%s: chessboard target not found; image skipped", n)
+            logger.warning("%s: %s target not found; image skipped", n, options.target)
     found = [n for n in names if corners[n] is not None]
     if len(found) < options.min_images:
         raise InputError(f"the target was found in only {len(found)} image(s) (need "
@@ -244,7 +305,8 @@ def calibrate_images(images: Mapping[str, NDArray[np.uint8]], camera: Camera | N
                          f"{', '.join(n for n in names if corners[n] is None) or '-'}")
     if camera is None:
         h, w = images[found[0]].shape[:2]
-        camera = self_calibrate([c for c in corners.values() if c is not None], (w, h), options)
+        seen = [c for c in corners.values() if c is not None]
+        camera = self_calibrate([c[0] for c in seen], (w, h), options, [c[1] for c in seen])
     obs = [observe_image(i, n, images[n], camera, options, corners[n])
            for i, n in enumerate(names)]
     spots = [s for o in obs for s in o.spots]

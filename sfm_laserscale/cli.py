@@ -230,8 +230,13 @@ def detect(**kw: Any) -> int:
 @main.command()
 @click.argument("images", nargs=-1, required=True, type=_path)
 @click.option("--board", default="9x6", show_default=True,
-              help="Chessboard inner corners COLSxROWS (as OpenCV counts them).")
-@click.option("--square-size", required=True, type=float, help="Chessboard square size (metres).")
+              help="Chessboard inner corners COLSxROWS (as OpenCV counts them), or 'charuco'.")
+@click.option("--squares", help="ChArUco board squares COLSxROWS (with --board charuco).")
+@click.option("--square-size", required=True, type=float, help="Square size (metres).")
+@click.option("--marker-size", type=float,
+              help="ChArUco marker side (metres; default 0.7 x the square size).")
+@click.option("--dictionary", default="DICT_5X5_100", show_default=True,
+              help="ChArUco markers: OpenCV ArUco dictionary name.")
 @click.option("--colors", default="red", show_default=True,
               help="Laser colour(s) to look for, comma separated (red, green, blue).")
 @click.option("--model", type=_path, help="COLMAP model / OpenMVG sfm_data.json with the "
@@ -245,19 +250,26 @@ def detect(**kw: Any) -> int:
 @click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
 @common_options
 def calibrate(**kw: Any) -> int:
-    """Calibrate the laser rig from images of a chessboard at several distances."""
+    """Calibrate the laser rig from images of a chessboard or ChArUco board at several
+    distances."""
     from sfm_laserscale.calibrate_run import CalibrateInputs, CalibrateOptions, run_calibrate
 
     if (kw["model"] is None) == (not kw["self_calibrate"]):
         raise InputError("give exactly one of --model PATH or --self-calibrate")
+    charuco = kw["board"].lower() == "charuco"
+    if charuco != (kw["squares"] is not None):
+        raise InputError("--squares COLSxROWS goes with --board charuco (and is required by it)")
+    grid = kw["squares"] if charuco else kw["board"]
     try:
-        cols, rows = (int(v) for v in kw["board"].lower().split("x"))
+        cols, rows = (int(v) for v in grid.lower().split("x"))
     except ValueError:
-        raise InputError(f"--board must be COLSxROWS like 9x6, got {kw['board']!r}") from None
+        raise InputError(f"--board/--squares must be COLSxROWS like 9x6, got {grid!r}") from None
     names = tuple(n.strip() for n in kw["names"].split(",")) if kw["names"] else None
     options = CalibrateOptions(
         board=(cols, rows), square_m=kw["square_size"], names=names, rig_name=kw["rig_name"],
-        colors=tuple(c.strip() for c in kw["colors"].split(",")))
+        colors=tuple(c.strip() for c in kw["colors"].split(",")),
+        target="charuco" if charuco else "chessboard", marker_m=kw["marker_size"],
+        dictionary=kw["dictionary"])
     result = run_calibrate(CalibrateInputs(images=tuple(kw["images"]), model=kw["model"]),
                            kw["out"], options, overwrite=kw["overwrite"])
     click.echo(result.summary)

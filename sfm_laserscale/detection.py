@@ -2,20 +2,26 @@
 
 Pipeline (per laser colour needed by the rig):
 
-1. colour-difference response, e.g. ``max(R - max(G, B), 0)`` for red (blue-green casts and
-   white light give 0). Where the laser channel is clipped (the white, saturated core of a
-   bright spot) the response is filled with the strongest colour difference found in a ring
-   around the clipped region, so a saturated spot with a coloured halo responds and a white
-   specular highlight (no coloured halo) does not;
+1. colour response: the max of ``max(R - max(G, B), 0)`` (for red) and the excess over the
+   local background, ``max(R - k·max(G, B), 0)`` with k the local background ratio (texture
+   and casts cancel; a faint red spot on cyan water responds). Where the laser channel is
+   clipped (the white, saturated core of a bright spot) the response is filled with the
+   strongest response found in a ring around the clipped region, so a saturated spot with a
+   coloured halo responds (a white highlight is rejected later by its added-light colour);
 2. multi-scale, scale-normalised difference-of-Gaussians on that response; local maxima above a
-   noise-relative threshold are the *candidates*;
+   noise-relative threshold and above ``min_clutter_ratio`` × the scene's clutter level (the
+   99th percentile of the DoG at all its local maxima: a textured seafloor's reddish pebbles
+   and patches also excite the background response, but as a population, and a laser spot
+   stands far above it) are the *candidates*;
 3. each candidate is measured at full resolution (half-maximum radius, roundness, contrast and
    SNR against a background annulus, compactness = the annulus must be dark) and refined to
    sub-pixel precision on a texture-free signal: the laser channel minus its local linear
    prediction from the (smoothed) other channels and a plane, fitted on a ring outside the
    spot's support, so the scene texture (present in every channel) cancels. The centre is a
    Gaussian-windowed centroid iterated to its fixed point (unbiased for any point-symmetric
-   spot, saturated or not) or, optionally and for spots cut by the border, a 2D Gaussian fit;
+   spot, saturated or not) or, optionally and for spots cut by the border, a 2D Gaussian fit.
+   Candidates whose added light is white (other/laser > ``max_white_ratio``) are rejected;
+   spots whose supports overlap are re-refined with each other's modelled light removed;
 4. geometry: each calibrated beam between ``min_range_m`` and ``max_range_m`` is projected with
    the camera model to an image polyline; a candidate is admissible for a laser only within
    ``band_px`` of it. One spot per laser, one laser per candidate, solved as a linear
@@ -80,6 +86,15 @@ class DetectionOptions:
     - ``max_candidates``: strongest local maxima examined per colour.
     - ``input_gamma``: pixel values are decoded as ``(v / 255) ** input_gamma`` before anything
       else (2.2 for gamma-encoded camera JPEGs, 1.0 for linear images).
+    - ``response``: "background" (default: laser channel minus the local background ratio times
+      the other channels, see :func:`background_excess`; finds faint spots on tinted water) or
+      "difference" (``max(laser - other, 0)`` only, the former default).
+    - ``max_white_ratio``: a candidate whose added light (over a plane fitted on its ring) has
+      ``Δother / Δlaser`` above this is white or scene texture, not a laser (unclipped spots).
+    - ``min_clutter_ratio``: a candidate's blob response must be at least this many times the
+      scene's *clutter level*, the 99th percentile of the blob response at all its local maxima
+      in the searched region (:func:`clutter_level`: the strongest texture blobs, e.g. reddish
+      pebbles, which the background response also finds). 0 disables the test.
     """
 
     min_range_m: float = 0.5
@@ -96,6 +111,9 @@ class DetectionOptions:
     saturation_level: float = 250.0 / 255.0
     max_candidates: int = 100
     input_gamma: float = 2.2
+    response: str = "background"
+    max_white_ratio: float = 0.7
+    min_clutter_ratio: float = 5.0
 
     def __post_init__(self) -> None:
         if not 0.0 < self.min_range_m < self.max_range_m:
@@ -103,6 +121,11 @@ class DetectionOptions:
                              f"{self.min_range_m:g}..{self.max_range_m:g} m")
         if not self.input_gamma > 0:
             raise InputError(f"input_gamma must be positive, got {self.input_gamma}")
+        if self.response not in ("background", "difference"):
+            raise InputError(f"response must be 'background' or 'difference', got "
+                             f"{self.response!r}")
+        if not self.min_clutter_ratio >= 0:
+            raise InputError(f"min_clutter_ratio must be >= 0, got {self.min_clutter_ratio}")
         if self.refine not in ("centroid", "gaussian"):
             raise InputError(f"refine must be 'centroid' or 'gaussian', got {self.refine!r}")
         if not self.spot_sigmas_px or min(self.spot_sigmas_px) <= 0:
@@ -294,6 +317,50 @@ def colour_difference(
     return np.asarray(diff, dtype=np.float32)
 
 
+#: Gaussian sigma (px) of the local background used for the laser/other channel ratio
+RATIO_SMOOTH_PX = 24.0
+
+
+def local_ratio(laser: F32, other: F32, sigma_px: float = RATIO_SMOOTH_PX) -> F32:
+    """(H, W) local background ratio k = G(laser) / G(other) (Gaussian means, clipped 0–1.5).
+
+    Computed on a 4× reduced image (area averaging) and resized back: the background varies
+    slowly, and a spot of a few pixels barely moves a 24 px mean.
+    """
+    h, w = laser.shape
+    f = 4 if min(h, w) >= 64 else 1
+    size = (max(1, w // f), max(1, h // f))
+    small = [cv2.resize(c, size, interpolation=cv2.INTER_AREA) if f > 1 else c
+             for c in (laser, other)]
+    num, den = (cv2.GaussianBlur(c, (0, 0), sigma_px / f, borderType=cv2.BORDER_REFLECT)
+                for c in small)
+    k = np.clip(num / np.maximum(den, np.float32(1e-4)), 0.0, 1.5).astype(np.float32)
+    if f > 1:
+        k = cv2.resize(k, (w, h), interpolation=cv2.INTER_LINEAR)
+    return np.asarray(k, dtype=np.float32)
+
+
+def background_excess(
+    laser: F32, other: F32, saturation_level: float, max_area: float = np.inf
+) -> F32:
+    """(H, W) laser-colour response relative to the local background, clipped cores filled.
+
+    ``max(laser - k·other, 0)`` with k the local background ratio (:func:`local_ratio`): the
+    scene's texture and colour cast scale every channel alike, so this cancels them and a faint
+    laser spot on a strongly tinted background (red on cyan water, where ``laser - other`` < 0)
+    still responds. Clipped regions are filled from a ring around them as in
+    :func:`colour_difference`. White light responds too (by 1 - k per unit): compact white
+    blobs are rejected per candidate by the colour of the light they add
+    (:func:`_added_light_ratio`).
+    """
+    k = local_ratio(laser, other)
+    ex = np.maximum(laser - k * other, np.float32(0.0)).astype(np.float32)
+    clipped = laser >= saturation_level
+    if np.any(clipped):
+        _fill_clipped(ex, clipped, max_area)
+    return np.asarray(ex, dtype=np.float32)
+
+
 def _dog_at_scale(resp: F32, sigma: float) -> F32:
     """Scale-normalised DoG -(G(1.6σ) - G(σ)) / 0.6 at full size, computed on a pyramid level.
 
@@ -332,6 +399,26 @@ def _local_maxima(dog: F32, min_value: float) -> NDArray[np.intp]:
     rows, cols = np.nonzero(peaks)
     order = np.argsort(-dog[rows, cols], kind="stable")
     return np.column_stack([rows[order], cols[order]])
+
+
+#: fewer positive local maxima than this in the searched region: no clutter level (too small)
+MIN_MAXIMA_FOR_CLUTTER = 50
+
+
+def clutter_level(dog: F32, quantile: float = 99.0) -> float:
+    """The scene's blob clutter: ``quantile`` % of the DoG at its positive 5×5 local maxima.
+
+    A laser image holds a handful of spots among thousands of local maxima (noise, texture), so
+    this measures the texture's strongest blobs, not the spots. On a laser-free textured
+    seafloor the best texture blobs reach ~1–3.4× this level, laser spots (even very faint,
+    on flat water) 10× and more (measured, docs/DETECTION.md). 0 when there are fewer than
+    MIN_MAXIMA_FOR_CLUTTER maxima.
+    """
+    dilated = cv2.dilate(dog, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    values = dog[(dog >= dilated) & (dog > 0)]
+    if values.size < MIN_MAXIMA_FOR_CLUTTER:
+        return 0.0
+    return float(np.percentile(values, quantile))
 
 
 def _robust_std(values: NDArray[np.floating]) -> float:
@@ -512,8 +599,13 @@ def _smoothed_other(planes: _Planes, win: tuple[slice, slice]) -> F64:
                           win[1].start - c0 : win[1].stop - c0], dtype=np.float64)
 
 
-def _spot_patch(planes: _Planes, x0: float, y0: float, support_px: float) -> SpotPatch | None:
-    """The texture-free signal around (x0, y0) (COLMAP px); None when too close to nothing."""
+def _spot_patch(planes: _Planes, x0: float, y0: float, support_px: float,
+                neighbours: tuple[NeighbourModel, ...] = ()) -> SpotPatch | None:
+    """The texture-free signal around (x0, y0) (COLMAP px); None when too close to nothing.
+
+    ``neighbours``: overlapping spots whose modelled light is removed from the laser channel
+    first (so neither the texture fit on the ring nor the centroid sees their halo).
+    """
     radius = int(math.ceil(support_px)) + 4
     win = _window(planes.laser.shape, int(math.floor(y0)), int(math.floor(x0)), radius)
     gx, gy = _grid(win)
@@ -523,6 +615,8 @@ def _spot_patch(planes: _Planes, x0: float, y0: float, support_px: float) -> Spo
     if ring.sum() < 8:
         return None
     laser = planes.laser[win].astype(np.float64)
+    for nb in neighbours:
+        laser = laser - nb.at(gx, gy)
     sig = laser - _texture_model(laser, _smoothed_other(planes, win), gx, gy, ring)
     inner_ok = (rr < support_px) & ~clipped_l
     if clipped_l.any():
@@ -532,6 +626,41 @@ def _spot_patch(planes: _Planes, x0: float, y0: float, support_px: float) -> Spo
                or y0 + support_px > h)
     return SpotPatch(gx=gx, gy=gy, signal=sig, usable=~planes.clipped_any[win],
                      noise=_robust_std(sig[ring]), support_px=support_px, cut=cut)
+
+
+@dataclass(frozen=True)
+class NeighbourModel:
+    """Radially symmetric model of a spot's texture-free light (for overlapping spots).
+
+    ``profile[i]``: mean signal at radius i + 0.5 px from (x, y), measured on the spot's side
+    facing away from the neighbour it is modelled for (where that neighbour adds nothing).
+    """
+
+    x: float
+    y: float
+    profile: F64
+
+    def at(self, gx: F64, gy: F64) -> F64:
+        """The modelled light at pixel centres (gx, gy); 0 beyond the profile."""
+        r = np.hypot(gx - self.x, gy - self.y)
+        centres = np.arange(len(self.profile)) + 0.5
+        return np.asarray(np.interp(r, centres, self.profile, right=0.0), dtype=np.float64)
+
+
+def neighbour_model(patch: SpotPatch, x: float, y: float, away_from: tuple[float, float]
+                    ) -> NeighbourModel:
+    """:class:`NeighbourModel` of the spot at (x, y) from the half of its patch facing away
+    from ``away_from`` (the spot being refined), clipped at zero, ending at the support."""
+    ux, uy = x - away_from[0], y - away_from[1]
+    away = ((patch.gx - x) * ux + (patch.gy - y) * uy) > 0
+    r = np.hypot(patch.gx - x, patch.gy - y)
+    keep = away & (r < patch.support_px)
+    bins = r[keep].astype(np.int64)
+    n = int(math.ceil(patch.support_px))
+    sums = np.bincount(bins, weights=patch.signal[keep], minlength=n)[:n]
+    counts = np.bincount(bins, minlength=n)[:n]
+    prof = np.where(counts > 0, sums / np.maximum(counts, 1), 0.0)
+    return NeighbourModel(x=x, y=y, profile=np.clip(prof, 0.0, None))
 
 
 def _centroid_step(
@@ -654,18 +783,22 @@ def _planes(
     laser, other = _laser_and_other(channels, color)
     resp = colour_difference(laser, other, options.saturation_level,
                              4.0 * math.pi * max_radius**2)
-    brightest = np.maximum(laser, other)
+    clipped_any = np.asarray(np.maximum(laser, other) >= options.saturation_level)
+    if options.response == "background":
+        resp = np.maximum(resp, background_excess(laser, other, options.saturation_level,
+                                                  4.0 * math.pi * max_radius**2))
     return _Planes(
         resp=resp, laser=laser, other=other,
         clipped_laser=np.asarray(laser >= options.saturation_level),
-        clipped_any=np.asarray(brightest >= options.saturation_level),
+        clipped_any=clipped_any,
     )
 
 
-def _refine(planes: _Planes, m: _Measure, options: DetectionOptions) -> tuple[float, float, float]:
+def _refine(planes: _Planes, m: _Measure, options: DetectionOptions,
+            neighbours: tuple[NeighbourModel, ...] = ()) -> tuple[float, float, float]:
     """Sub-pixel centre and localisation sigma of one candidate (COLMAP px); NaN if impossible."""
     sigma_w = max(1.0, m.radius_px)
-    patch = _spot_patch(planes, m.x, m.y, max(m.support_px, 3.0 * sigma_w))
+    patch = _spot_patch(planes, m.x, m.y, max(m.support_px, 3.0 * sigma_w), neighbours)
     if patch is None:
         return math.nan, math.nan, math.nan
     if options.refine == "gaussian" or patch.cut:
@@ -673,6 +806,31 @@ def _refine(planes: _Planes, m: _Measure, options: DetectionOptions) -> tuple[fl
         # model fitted to the visible pixels is not
         return refine_gaussian(patch, m.x, m.y, sigma_w)
     return refine_centroid(patch, m.x, m.y, sigma_w)
+
+
+def _added_light_ratio(planes: _Planes, x: float, y: float, radius: float, support: float
+                       ) -> float:
+    """Δother / Δlaser of the light a candidate adds over planes fitted on its ring (0 = pure
+    laser colour, ~1 = white); unclipped pixels only (a clipped core: its shoulders)."""
+    win = _window(planes.laser.shape, int(math.floor(y)), int(math.floor(x)),
+                  int(math.ceil(max(support, 4.0))) + 3)
+    gx, gy = _grid(win)
+    rr = np.hypot(gx - x, gy - y)
+    ok = ~planes.clipped_any[win]
+    # unclipped pixels of the spot: its shoulders when the core is clipped
+    inner = (rr <= max(2.0, radius) + (2.0 if planes.clipped_any[win].any() else 0.0)) & ok
+    ring = (rr >= max(support, 4.0)) & ok
+    if inner.sum() < 4 or ring.sum() < 8:
+        return 0.0
+    design = np.column_stack([np.ones(ring.sum()), gx[ring] - x, gy[ring] - y])
+    added = []
+    for plane in (planes.laser, planes.other):
+        vals = plane[win].astype(np.float64)
+        coef = np.linalg.lstsq(design, vals[ring], rcond=None)[0]
+        pred = coef[0] + coef[1] * (gx[inner] - x) + coef[2] * (gy[inner] - y)
+        added.append(float(np.mean(vals[inner] - pred)))
+    d_laser, d_other = added
+    return d_other / d_laser if d_laser > 0 else math.inf
 
 
 def _measure_peak(
@@ -695,6 +853,11 @@ def _measure_peak(
     x, y, sig = _refine(planes, m, options)
     if not (math.hypot(x - m.x, y - m.y) <= max(2.0, 1.5 * radius) and math.isfinite(sig)):
         m.rejected = "sub-pixel refinement failed"
+        return m
+    ratio = _added_light_ratio(planes, x, y, radius, m.support_px)
+    if ratio > options.max_white_ratio:
+        m.rejected = (f"not laser-coloured (added light other/laser {ratio:.2f} > "
+                      f"{options.max_white_ratio:g})")
         return m
     m.x, m.y = x, y
     m.sigma_px = math.hypot(sig, options.sigma_floor_px)
@@ -724,11 +887,16 @@ def _candidates_for_colour(
     planes = _planes(channels, color, options, region.max_radius)
     dog = blob_response(planes.resp, options.spot_sigmas_px)
     threshold = max(4.0 * _robust_std(dog[::4, ::4]), 4.0 / 255.0)
+    clutter = options.min_clutter_ratio * clutter_level(dog)
     out: list[_Measure] = []
     for row, col in _local_maxima(dog, threshold)[: 4 * options.max_candidates]:
         m = _Measure(x=col + 0.5, y=row + 0.5, color=color, response=float(dog[row, col]))
         if region.near is not None and not region.near[row, col]:
             m.rejected = "off every beam band (not measured)"
+        elif m.response < clutter:
+            m.rejected = (f"not above the scene's texture (blob response {m.response:.4f} < "
+                          f"{options.min_clutter_ratio:g} × clutter level "
+                          f"{clutter / options.min_clutter_ratio:.4f}; not measured)")
         elif sum(o.rejected is None for o in out) >= options.max_candidates:
             m.rejected = f"beyond the {options.max_candidates} strongest maxima (not measured)"
         else:
@@ -739,11 +907,47 @@ def _candidates_for_colour(
             if m.rejected is None:
                 m.rejected = _covering(out, m.x, m.y)
         out.append(m)
+    _separate_overlapping(planes, [m for m in out if m.rejected is None], options)
     x0, y0 = region.roi[:2]
     for m in out:  # crop -> image coordinates
         m.x += x0
         m.y += y0
     return out
+
+
+def _patch_support(m: _Measure) -> float:
+    return max(m.support_px, 3.0 * max(1.0, m.radius_px))
+
+
+def _separate_overlapping(planes: _Planes, valid: list[_Measure], options: DetectionOptions,
+                          rounds: int = 3) -> None:
+    """In place: re-refine spots whose supports overlap, each with its neighbours' light
+    (modelled from their far sides, :func:`neighbour_model`) removed. Alternating rounds."""
+    groups = {i: [j for j, o in enumerate(valid) if j != i and
+                  math.hypot(o.x - m.x, o.y - m.y) < _patch_support(m) + _patch_support(o)]
+              for i, m in enumerate(valid)}
+    if not any(groups.values()):
+        return
+    models: dict[tuple[int, int], NeighbourModel] = {}  # (spot, for whom) -> model
+    for _ in range(rounds):
+        fresh: dict[tuple[int, int], NeighbourModel] = {}
+        for j, nbs in groups.items():  # model of spot j as seen by each neighbour i
+            o = valid[j]
+            for i in nbs:
+                others = tuple(models[(k, j)] for k in groups[j] if (k, j) in models)
+                p = _spot_patch(planes, o.x, o.y, _patch_support(o), others)
+                if p is not None:
+                    fresh[(j, i)] = neighbour_model(p, o.x, o.y, (valid[i].x, valid[i].y))
+        models = fresh
+        for i, nbs in groups.items():
+            m = valid[i]
+            mine = tuple(models[(j, i)] for j in nbs if (j, i) in models)
+            if not mine:
+                continue
+            x, y, sig = _refine(planes, m, options, mine)
+            if math.isfinite(sig) and math.hypot(x - m.x, y - m.y) <= max(2.0, m.radius_px):
+                m.x, m.y = x, y
+                m.sigma_px = math.hypot(sig, options.sigma_floor_px)
 
 
 def _colours_needed(rig: Rig) -> list[str]:

@@ -16,6 +16,8 @@ from sfm_laserscale.detection import (
     DetectionOptions,
     DetectionResult,
     beam_polyline_px,
+    blob_response,
+    clutter_level,
     default_band_px,
     detect_spots,
     distance_to_polyline,
@@ -440,3 +442,23 @@ def test_full_hd_image_is_fast() -> None:
     elapsed = time.perf_counter() - t0
     assert len(res.spots) == 4 and max(errors_px(res, scene.truth).values()) < 0.3
     assert elapsed < 1.0, f"{elapsed:.2f} s"  # measured ~0.15 s (2 slow cores)
+
+
+def test_clutter_level_measures_texture_not_spots() -> None:
+    """A few strong spots hardly move the clutter level of a noisy image; a coarse texture of
+    blobs raises it; too few maxima give 0; a negative ratio is refused."""
+    rng = np.random.default_rng(3)
+    noise = rng.normal(0.0, 0.01, (300, 400)).astype(np.float32).clip(0, None)
+    base = clutter_level(blob_response(noise, (1.0, 2.0, 4.0)))
+    spotted = noise.copy()
+    for x, y in [(50, 50), (200, 150), (350, 250), (100, 250)]:
+        yy, xx = np.mgrid[0:300, 0:400]
+        spotted += 0.5 * np.exp(-0.5 * ((xx - x) ** 2 + (yy - y) ** 2) / 2.0**2).astype(np.float32)
+    with_spots = clutter_level(blob_response(spotted, (1.0, 2.0, 4.0)))
+    assert base > 0 and abs(with_spots / base - 1.0) < 0.05
+    blobs = noise + 0.05 * cv2.GaussianBlur(rng.random((300, 400)).astype(np.float32) ** 8,
+                                            (0, 0), 2.0) / 0.01
+    assert clutter_level(blob_response(blobs, (1.0, 2.0, 4.0))) > 3.0 * base
+    assert clutter_level(np.zeros((20, 20), np.float32)) == 0.0
+    with pytest.raises(InputError):
+        DetectionOptions(min_clutter_ratio=-1.0)

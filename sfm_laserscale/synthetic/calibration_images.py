@@ -1,4 +1,5 @@
-"""Render rig-calibration images of a known rig: a chessboard on a plane, laser spots on it.
+"""Render rig-calibration images of a known rig: a chessboard or ChArUco board on a plane,
+laser spots on it.
 
 The board texture is projected exactly through a pinhole camera and anti-aliased by
 supersampling every pixel on an ``ss x ss`` grid (COLMAP convention: pixel (i, j) covers
@@ -11,6 +12,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -25,7 +27,9 @@ F64 = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class BoardSpec:
-    """A chessboard: inner corners (cols x rows), square size (m), white margin (squares)."""
+    """A target: chessboard (``cols`` x ``rows`` inner corners) or ChArUco (``cols`` x ``rows``
+    squares, OpenCV's layout, ArUco markers of ``marker_fraction`` of a square from
+    ``dictionary``); square size (m), white margin (squares)."""
 
     cols: int = 9
     rows: int = 6
@@ -34,6 +38,9 @@ class BoardSpec:
     white: float = 0.45  # linear intensity of white squares and margin
     black: float = 0.04
     background: float = 0.2
+    kind: str = "chessboard"  # chessboard | charuco
+    marker_fraction: float = 0.7
+    dictionary: str = "DICT_5X5_100"
 
 
 @dataclass(frozen=True)
@@ -60,8 +67,42 @@ def board_pose(distance_m: float, tilt_x_deg: float, tilt_y_deg: float,
 def board_extent_m(board: BoardSpec) -> tuple[float, float]:
     """Half width and half height (m) of the whole board including its margin."""
     sq = board.square_m
-    return ((board.cols + 1) / 2 + board.margin_squares) * sq, \
-        ((board.rows + 1) / 2 + board.margin_squares) * sq
+    extra = 0 if board.kind == "charuco" else 1  # chessboard: squares = inner corners + 1
+    return ((board.cols + extra) / 2 + board.margin_squares) * sq, \
+        ((board.rows + extra) / 2 + board.margin_squares) * sq
+
+
+#: pixels per square of the ChArUco texture sampled by :func:`render_board`
+CHARUCO_PX_PER_SQUARE = 60
+
+
+def charuco_texture(board: BoardSpec) -> NDArray[np.float32]:
+    """(rows*P, cols*P) ChArUco pattern (1 = white, 0 = black), P = CHARUCO_PX_PER_SQUARE.
+
+    Texel (i, j) covers board coordinates [j, j+1) x [i, i+1) / P squares from the top-left
+    outer corner, which is where OpenCV's ChArUco object points start (x right, y down).
+    """
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, board.dictionary))
+    cb = cv2.aruco.CharucoBoard((board.cols, board.rows), board.square_m,
+                                board.marker_fraction * board.square_m, dictionary)
+    px = CHARUCO_PX_PER_SQUARE
+    img = cb.generateImage((board.cols * px, board.rows * px), marginSize=0, borderBits=1)
+    return np.asarray(img, dtype=np.float32) / 255.0
+
+
+def _charuco_intensity(u: NDArray[np.float32], v: NDArray[np.float32], board: BoardSpec,
+                       texture: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Linear intensity of a ChArUco board at board coordinates (m, origin at its centre)."""
+    sq, px = board.square_m, CHARUCO_PX_PER_SQUARE
+    hw, hh = board_extent_m(board)
+    ju = np.floor((u / sq + board.cols / 2) * px).astype(np.int64)
+    iv = np.floor((v / sq + board.rows / 2) * px).astype(np.int64)
+    inside = (ju >= 0) & (ju < texture.shape[1]) & (iv >= 0) & (iv < texture.shape[0])
+    t = texture[np.clip(iv, 0, texture.shape[0] - 1), np.clip(ju, 0, texture.shape[1] - 1)]
+    pattern = board.black + (board.white - board.black) * t
+    on_board = (np.abs(u) <= hw) & (np.abs(v) <= hh)
+    out = np.where(on_board, np.float32(board.white), np.float32(board.background))
+    return np.where(inside, pattern, out).astype(np.float32)
 
 
 def _board_intensity(u: NDArray[np.float32], v: NDArray[np.float32], board: BoardSpec
@@ -89,6 +130,7 @@ def render_board(camera: Camera, cam_from_board: Pose, board: BoardSpec, ss: int
     n = r[:, 2]
     d = float(n @ t)
     out = np.empty((h, w), dtype=np.float32)
+    texture = charuco_texture(board) if board.kind == "charuco" else None
     chunk = 64
     for y0 in range(0, h, chunk):
         y1 = min(h, y0 + chunk)
@@ -99,7 +141,9 @@ def render_board(camera: Camera, cam_from_board: Pose, board: BoardSpec, ss: int
         px, py, pz = lam * rx - t[0], lam * ry - t[1], lam - t[2]  # X_cam - t
         u = (r[0, 0] * px + r[1, 0] * py + r[2, 0] * pz).astype(np.float32)  # R^T (X - t)
         v = (r[0, 1] * px + r[1, 1] * py + r[2, 1] * pz).astype(np.float32)
-        val = np.where(lam > 0, _board_intensity(u, v, board), np.float32(board.background))
+        inten = (_board_intensity(u, v, board) if texture is None
+                 else _charuco_intensity(u, v, board, texture))
+        val = np.where(lam > 0, inten, np.float32(board.background))
         out[y0:y1] = val.reshape(y1 - y0, ss, w, ss).mean(axis=(1, 3))
     return np.repeat(out[:, :, None], 3, axis=2)
 
