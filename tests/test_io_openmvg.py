@@ -576,7 +576,7 @@ def test_scale_outputs_write_the_rescaled_sfm_data(tmp_path: Path) -> None:
     loaded = SimpleNamespace(model=SimpleNamespace(source_format="openmvg"))
     out = tmp_path / "out"
     out.mkdir()
-    _write_scaled(out, inputs, loaded, 0.5)  # type: ignore[arg-type]
+    _write_scaled(out, inputs, loaded, 0.5, False)  # type: ignore[arg-type]
     scaled = read_openmvg_sfm_data(out / "scaled" / "model" / "sfm_data.json", OMVG / "matches")
     original = read_openmvg_sfm_data(SFM)
     np.testing.assert_allclose(scaled.points_xyz, 0.5 * original.points_xyz, rtol=1e-15)

@@ -247,6 +247,10 @@ class _ImageRecord:
     num_points2d: int
 
 
+#: larger image sides (pixels) are taken for corruption (a flipped high bit of a uint64 width).
+_MAX_IMAGE_SIDE = 2**20
+
+
 def _parse_cameras_bin(data: bytes, path: Path) -> dict[int, Camera]:
     cur = _Cursor(data, path)
     n = cur.count("cameras", _CAMERA_HEAD.size)
@@ -261,6 +265,10 @@ def _parse_cameras_bin(data: bytes, path: Path) -> dict[int, Camera]:
         assert n_params is not None  # a known name always has a parameter count
         at = cur.take(8 * n_params, f"the {n_params} parameters of {what} ({name})")
         params = np.frombuffer(data, "<f8", n_params, at).astype(np.float64)
+        if not (0 < width <= _MAX_IMAGE_SIDE and 0 < height <= _MAX_IMAGE_SIDE):
+            raise InputError(f"corrupt file: {what} has an implausible size {width}x{height}", path)
+        if not np.isfinite(params).all():
+            raise InputError(f"corrupt file: {what} has non-finite parameters {params}", path)
         _put_unique(cameras, cam_id, Camera(cam_id, name, int(width), int(height), params),
                     "camera", path)
     cur.finish()
@@ -408,8 +416,10 @@ def _parse_camera_line(line: bytes, path: Path, lineno: int) -> Camera:
     except (IndexError, ValueError, UnicodeDecodeError):
         raise _line_error(path, lineno, "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]",
                           line) from None
-    if not (0 <= cam_id < 2**32 and width > 0 and height > 0):
-        raise _line_error(path, lineno, "CAMERA_ID, WIDTH or HEIGHT out of range", line)
+    if not (0 <= cam_id < 2**32 and 0 < width <= _MAX_IMAGE_SIDE
+            and 0 < height <= _MAX_IMAGE_SIDE and np.isfinite(params).all()):
+        raise _line_error(path, lineno, "CAMERA_ID, WIDTH, HEIGHT or a parameter out of range",
+                          line)
     n_params = camera_model_num_params(model)
     if n_params is None:
         raise _line_error(path, lineno, f"unknown camera model {model!r}", line)

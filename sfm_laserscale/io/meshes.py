@@ -31,7 +31,7 @@ import re
 import shutil
 import struct
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -57,6 +57,14 @@ _MAX_HEADER_BYTES = 1 << 20
 _COPY_CHUNK = 1 << 24  # bytes per read/write when streaming
 _SCALE_CHUNK = 1 << 22  # bytes of vertex rows scaled at a time
 _GATHER_ROWS = 1 << 20  # rows per fancy-index gather (bounds temporary index arrays)
+
+#: Progress callback of the mesh writers: called with the number of bytes of the source mesh
+#: processed since the previous call (the calls of one write add up to the file's size).
+Progress = Callable[[int], None]
+
+
+def _no_progress(nbytes: int) -> None:
+    """The default progress callback: nothing."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -816,13 +824,16 @@ def _load_with_trimesh(path: Path) -> tuple[NDArray[Any], NDArray[Any]]:
 # ============================================================================= rescaling
 
 
-def write_scaled_mesh(src: str | Path, dst_dir: str | Path, scale: float) -> list[Path]:
+def write_scaled_mesh(src: str | Path, dst_dir: str | Path, scale: float,
+                      progress: Progress | None = None) -> list[Path]:
     """Write ``dst_dir/<src.name>`` with vertex positions × ``scale``; returns written files.
 
     PLY/OBJ/OFF/STL: every other byte unchanged; textures copied with their relative paths.
     glTF/GLB: positions scaled in the buffers (node translations too), JSON re-serialised.
-    The input is never modified.
+    The input is never modified. ``progress`` (e.g. a tqdm bar's ``update``) receives the
+    source bytes processed, as they are (binary PLY and OBJ stream) or at the end (others).
     """
+    report = progress or _no_progress
     src, dst_dir = Path(src), Path(dst_dir)
     kind = _mesh_kind(src)
     _check_input_file(src)
@@ -835,15 +846,17 @@ def write_scaled_mesh(src: str | Path, dst_dir: str | Path, scale: float) -> lis
     dst_dir.mkdir(parents=True, exist_ok=True)
     dst = dst_dir / src.name
     if kind == "ply":
-        written = _write_scaled_ply(src, dst, float(scale))
+        written = _write_scaled_ply(src, dst, float(scale), report)
     elif kind == "obj":
-        written = _write_scaled_obj(src, dst, float(scale))
-    elif kind in ("glb", "gltf"):
-        written = _write_scaled_gltf(src, dst, float(scale))
-    elif kind == "off":
-        written = _write_scaled_off(src, dst, float(scale))
+        written = _write_scaled_obj(src, dst, float(scale), report)
     else:
-        written = _write_scaled_stl(src, dst, float(scale))
+        if kind in ("glb", "gltf"):
+            written = _write_scaled_gltf(src, dst, float(scale))
+        elif kind == "off":
+            written = _write_scaled_off(src, dst, float(scale))
+        else:
+            written = _write_scaled_stl(src, dst, float(scale))
+        report(src.stat().st_size)
     logger.info("wrote %s (scale %.9g) and %d side files", dst, scale, len(written) - 1)
     return written
 
@@ -892,7 +905,8 @@ def _copy_side_file(rel: str, src_dir: Path, dst_dir: Path, written: list[Path])
 # ----------------------------------------------------------------------------- PLY rescale
 
 
-def _write_scaled_ply(src: Path, dst: Path, scale: float) -> list[Path]:
+def _write_scaled_ply(src: Path, dst: Path, scale: float,
+                      progress: Progress = _no_progress) -> list[Path]:
     header = _read_ply_header(src)
     vertex = header.element("vertex")
     if vertex is None:
@@ -905,8 +919,9 @@ def _write_scaled_ply(src: Path, dst: Path, scale: float) -> list[Path]:
             raise InputError(f"PLY vertex {axis!r} is integer-typed: cannot rescale exactly", src)
     if header.fmt == "ascii":
         _write_scaled_ply_ascii(src, dst, header, vertex, scale)
+        progress(src.stat().st_size)
     else:
-        _write_scaled_ply_binary(src, dst, header, vertex, scale)
+        _write_scaled_ply_binary(src, dst, header, vertex, scale, progress)
     written = [dst]
     for name in header.texture_files:
         _copy_side_file(name, src.parent, dst.parent, written)
@@ -938,15 +953,17 @@ def _write_all(fo: BinaryIO, data: memoryview) -> None:
 
 
 def _copy_range(fi: io.RawIOBase | io.BufferedIOBase, fo: BinaryIO, offset: int, count: int,
-                path: Path) -> None:
+                path: Path, progress: Progress = _no_progress) -> None:
     """Append bytes [offset, offset + count) of ``fi`` to ``fo`` (in the kernel if possible)."""
     done = 0
     try:
         while done < count:  # sendfile: no user-space copy, no fresh memory
-            sent = os.sendfile(fo.fileno(), fi.fileno(), offset + done, count - done)
+            sent = os.sendfile(fo.fileno(), fi.fileno(), offset + done,
+                               min(count - done, _COPY_CHUNK))
             if sent == 0:
                 raise InputError("file ended early (truncated?)", path)
             done += sent
+            progress(sent)
     except (AttributeError, OSError):  # no sendfile here: copy through a reused buffer
         buffer = memoryview(bytearray(min(_COPY_CHUNK, max(count - done, 1))))
         fi.seek(offset + done)
@@ -955,10 +972,11 @@ def _copy_range(fi: io.RawIOBase | io.BufferedIOBase, fo: BinaryIO, offset: int,
             _read_exact(fi, part, path)
             _write_all(fo, part)
             done += len(part)
+            progress(len(part))
 
 
 def _write_scaled_ply_binary(src: Path, dst: Path, header: _PlyHeader, vertex: _PlyElement,
-                             scale: float) -> None:
+                             scale: float, progress: Progress = _no_progress) -> None:
     """Stream: bytes before the vertex rows, scaled vertex rows in chunks, the rest verbatim.
 
     Memory: one chunk of rows and one float64 scratch column, reused (fresh allocations
@@ -969,9 +987,13 @@ def _write_scaled_ply_binary(src: Path, dst: Path, header: _PlyHeader, vertex: _
     for elem in header.elements[: header.elements.index(vertex)]:
         pos = _scan_binary_element(buf, pos, elem, header.byteorder, src).end
     data = _scan_binary_element(buf, pos, vertex, header.byteorder, src)
+    end = data.end
+    for elem in header.elements[header.elements.index(vertex) + 1:]:  # truncated -> InputError
+        end = _scan_binary_element(buf, end, elem, header.byteorder, src).end
     size = len(buf)
     del buf
     with open(src, "rb", buffering=0) as fi, _AtomicOutput(dst, buffered=False) as fo:
+        progress(data.start)  # the header and the elements before the vertices
         _copy_range(fi, fo, 0, data.start, src)
         fi.seek(data.start)
         if data.dtype is not None:
@@ -983,12 +1005,14 @@ def _write_scaled_ply_binary(src: Path, dst: Path, header: _PlyHeader, vertex: _
                 _read_exact(fi, _bytes_view(chunk[:n]), src)
                 _scale_fields(chunk[:n], scale, scratch[:n])
                 _write_all(fo, _bytes_view(chunk[:n]))
+                progress(n * data.dtype.itemsize)
         else:  # rows of varying size (list properties in the vertex element): whole block
             block = np.empty(data.end - data.start, dtype=np.uint8)
             _read_exact(fi, _bytes_view(block), src)
             _scale_variable_vertex_rows(block, data, scale)
             _write_all(fo, _bytes_view(block))
-        _copy_range(fi, fo, data.end, size - data.end, src)
+            progress(len(block))
+        _copy_range(fi, fo, data.end, size - data.end, src, progress)
 
 
 def _scale_variable_vertex_rows(block: NDArray[np.uint8], data: _BinaryElement,
@@ -1024,9 +1048,7 @@ def _write_scaled_ply_ascii(src: Path, dst: Path, header: _PlyHeader, vertex: _P
                 raise _truncated(src, elem)
             if elem is vertex:
                 lines[i] = _scale_ascii_vertex_line(lines[i], vertex, scale, src)
-            i += 1
-        if elem is vertex:
-            break
+            i += 1  # rows of the later elements are counted too: a truncated file is refused
     with _AtomicOutput(dst) as fo:
         fo.write(raw[: header.data_offset])
         fo.write(b"\n".join(lines))
@@ -1093,7 +1115,8 @@ def _line_blocks(f: BinaryIO) -> Iterator[bytes]:
         yield carry
 
 
-def _write_scaled_obj(src: Path, dst: Path, scale: float) -> list[Path]:
+def _write_scaled_obj(src: Path, dst: Path, scale: float,
+                      progress: Progress = _no_progress) -> list[Path]:
     """Rewrite only the x y z of 'v' lines; copy the MTL files and their textures."""
     mtllibs: list[str] = []
 
@@ -1114,6 +1137,7 @@ def _write_scaled_obj(src: Path, dst: Path, scale: float) -> list[Path]:
                 _raise_bad_xyz_line(block[1:], _OBJ_V, first_line, src)
             n_vertices += n_scaled
             fo.write(out[1:])
+            progress(len(block) - 1)
             mtllibs += [m.decode("utf-8", "surrogateescape").strip()
                         for m in _OBJ_MTLLIB.findall(block)]
             first_line += block.count(b"\n") - 1

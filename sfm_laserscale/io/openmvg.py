@@ -339,8 +339,11 @@ def _structure(doc: dict[str, Any], views: dict[int, OpenMVGView], path: Path) -
         except (KeyError, TypeError, ValueError) as e:
             raise InputError(f"structure[key {key}]: bad landmark ({e!r})", path) from e
         ids.append(key)
-    pts = np.asarray(xyz, dtype=np.float64).reshape(-1, 3) if xyz else np.zeros((0, 3))
-    xy = np.asarray(o_xy, dtype=np.float64).reshape(-1, 2) if o_xy else np.zeros((0, 2))
+    try:  # ragged lists (a 2-number X) fail here, not above
+        pts = np.asarray(xyz, dtype=np.float64).reshape(-1, 3) if xyz else np.zeros((0, 3))
+        xy = np.asarray(o_xy, dtype=np.float64).reshape(-1, 2) if o_xy else np.zeros((0, 2))
+    except ValueError:
+        pts, xy = np.zeros((0, 3)), np.zeros((0, 2))
     if pts.shape[0] != len(ids) or xy.shape[0] != len(o_view):
         raise InputError("structure: every X must have 3 numbers and every x 2", path)
     return (np.asarray(ids, dtype=np.uint64), pts, np.asarray(o_view, dtype=np.int64),

@@ -1,0 +1,103 @@
+"""scripts/benchmark.py and synthetic/bench_data.py: the smallest case end to end (< 30 s)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sfm_laserscale.io.colmap import read_colmap_model
+from sfm_laserscale.io.meshes import load_mesh
+from sfm_laserscale.registration import _rank_per_point, _reduce_per_point
+from sfm_laserscale.synthetic.bench_data import (
+    pad_model,
+    sift_like_descriptors,
+    write_heightfield_mesh,
+)
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmark.py"
+
+
+def _bench():  # type: ignore[no-untyped-def]
+    spec = importlib.util.spec_from_file_location("benchmark", SCRIPT)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["benchmark"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory: pytest.TempPathFactory, small_dataset) -> Path:  # type: ignore[no-untyped-def]
+    """A benchmark work folder whose demo data set is the session's small one."""
+    w = tmp_path_factory.mktemp("bench")
+    (w / "demo").symlink_to(small_dataset.out_dir, target_is_directory=True)
+    return w
+
+
+def test_smallest_case_has_every_stage_and_sane_numbers(work: Path) -> None:
+    bench = _bench()
+    case = {"points": 3000, "triangles": 20000, "images": 1}
+    r = bench.run_case_subprocess(work, case, timeout=120)
+    assert "error" not in r, r.get("error")
+    s = r["seconds"]
+    assert not r["not_wrapped"], r["not_wrapped"]  # a stage function was renamed
+    assert set(bench.STAGES) <= set(s), set(bench.STAGES) - set(s)
+    assert all(s[k] > 0 for k in bench.STAGES if k != "other"), s  # every stage ran
+    assert s["other"] >= 0
+    assert s["total"] == pytest.approx(sum(s[k] for k in bench.STAGES), rel=1e-3, abs=1e-3)
+    assert s["sift"] > 0 and s["match"] > 0 and s["mesh_read"] > 0 and s["mesh_write"] > 0
+    assert r["registered"] == 1 and r["n_images"] == 1 and r["inliers"][0] >= 30
+    assert 0.30 < r["scale"] < 0.33  # the demo truth is ~0.315 m per model unit
+    assert r["peak_rss_bytes"] >= r["baseline_rss_bytes"] > 50 * 2**20
+    assert r["mesh_bytes"] == (work / "mesh_20000.ply").stat().st_size
+    d = bench.derived(r)
+    assert d["mem_budget"] == 2 * r["mesh_bytes"] + r["model_bytes"]
+    assert d["rest_s"] == pytest.approx(s["total"] - s["sift"] - s["mesh_read"]
+                                        - s["mesh_write"])
+    table = bench.markdown([r], {})
+    assert all(f"| {st} |" in table or f" {st} |" in table for st in bench.STAGES)
+    assert "3k pts / 20k tri / 1 img" in table
+
+
+def test_loglog_slope_known_answers() -> None:
+    bench = _bench()
+    x = [1e4, 1e5, 1e6]
+    assert bench.slope(x, [3 * v**2 for v in x]) == pytest.approx(2.0)
+    assert bench.slope(x, [5.0, 5.0, 5.0]) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_reduce_per_point_equals_ranking_every_point() -> None:
+    rng = np.random.default_rng(3)
+    rows = rng.integers(0, 400, 3000)
+    desc = rng.integers(0, 256, (3000, 128)).astype(np.uint8)
+    for k in (1, 3, 8, 50):
+        want = _rank_per_point(desc.astype(np.float32), rows, k)
+        got = _reduce_per_point(desc, rows, k)
+        np.testing.assert_array_equal(got, want)
+        assert np.bincount(rows[got]).max() <= k
+
+
+def test_sift_like_descriptors_permute_real_ones() -> None:
+    rng = np.random.default_rng(0)
+    real = rng.integers(0, 256, (50, 128)).astype(np.uint8)
+    out = sift_like_descriptors(real, 200, np.random.default_rng(1))
+    assert out.shape == (200, 128) and out.dtype == np.uint8
+    real_sorted = {tuple(np.sort(r)) for r in real}
+    assert all(tuple(np.sort(r)) in real_sorted for r in out)  # same values, moved bins
+    assert not any((out == r).all(axis=1).any() for r in real[:10])
+
+
+def test_padded_model_and_resampled_mesh(tmp_path: Path, small_dataset) -> None:  # type: ignore[no-untyped-def]
+    demo = small_dataset.out_dir
+    pm = pad_model(demo / "sparse" / "0", demo / "database.db", tmp_path / "m", 5000)
+    model = read_colmap_model(pm.model_dir)
+    assert len(model.point3D_ids) == pm.n_points == 5000
+    assert len(np.unique(model.point3D_ids)) == 5000
+    n = write_heightfield_mesh(demo / "mesh.ply", demo / "truth.json", tmp_path / "m.ply", 50000)
+    mesh, ref = load_mesh(tmp_path / "m.ply"), load_mesh(demo / "mesh.ply")
+    assert mesh.num_triangles == n and abs(n - 50000) < 0.02 * 50000
+    np.testing.assert_allclose(mesh.bounds, ref.bounds, atol=0.01 * ref.extent)
