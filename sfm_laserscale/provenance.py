@@ -1,15 +1,23 @@
-"""What a run needs to be reproduced: version, command, input files (size, SHA-256), options."""
+"""What a run needs to be reproduced: version, command, input files (size, SHA-256), options;
+the run's log (the package's records and pycolmap's own glog messages) and its terminal progress
+bars (one rule for every step: shown unless ``--quiet`` and only when stderr is a terminal).
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
 import logging
+import os
+import shutil
 import sys
-from collections.abc import Iterable, Iterator
+import tempfile
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
+
+from tqdm import tqdm
 
 from sfm_laserscale import __version__
 
@@ -88,3 +96,136 @@ def captured_log(name: str = "sfm_laserscale") -> Iterator[list[str]]:
     finally:
         log.removeHandler(handler)
         log.setLevel(old_level)
+
+
+#: Header lines glog writes at the top of every log file (not messages).
+_GLOG_HEADER = ("Log file created at:", "Running on machine:", "Running duration",
+                "Log line format:")
+
+
+class ColmapLog:
+    """pycolmap's own (glog) messages of a run, written to temporary files while it runs.
+
+    glog buffers INFO lines of a log file (FLAGS_logbuflevel, up to logbufsecs = 30 s) and
+    pycolmap 4.2 exposes no flush; changing a severity's destination closes the current file
+    (``LogFileObject::SetBasename``), which flushes it. So :meth:`lines` moves the destination
+    to a fresh prefix and reads the closed files.
+    """
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self._part = 0
+        self._lines: list[str] = []
+        self._read: set[Path] = set()
+        self._stopped = False
+
+    def _destination(self, prefix: str) -> None:
+        import pycolmap
+
+        pycolmap.logging.set_log_destination(pycolmap.logging.INFO, prefix)
+
+    def start(self) -> None:
+        """Send every severity (INFO and up) to a file in ``folder``."""
+        self._part += 1
+        self._destination(str(self.folder / f"pycolmap-{self._part}."))
+
+    def _collect(self) -> None:
+        for path in sorted(self.folder.iterdir()):
+            if path in self._read or not path.is_file() or path.is_symlink():
+                continue
+            self._read.add(path)
+            text = path.read_text(encoding="utf-8", errors="replace")
+            self._lines += [ln for ln in text.splitlines()
+                            if ln.strip() and not ln.startswith(_GLOG_HEADER)]
+
+    def lines(self) -> list[str]:
+        """Every message so far (flushes: the current file is closed, a new one started)."""
+        if not self._stopped:
+            self.start()
+            self._collect()
+        return list(self._lines)
+
+    def stop(self) -> list[str]:
+        """Close the files (no more glog files) and return every message."""
+        if not self._stopped:
+            self._destination("")
+            self._collect()
+            self._stopped = True
+        return list(self._lines)
+
+
+_GLOG_DIR_PREFIX = "sfm_laserscale_glog_"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def _remove_stale_glog_dirs(parent: Path) -> None:
+    """Remove the temporary glog folders of runs whose process is gone (killed runs cannot
+    clean up after themselves); the folder name holds the process id."""
+    for d in parent.glob(_GLOG_DIR_PREFIX + "*_*"):
+        pid = d.name[len(_GLOG_DIR_PREFIX):].split("_", 1)[0]
+        if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
+            shutil.rmtree(d, ignore_errors=True)
+
+
+def _stderr_threshold(logging_: Any) -> int:
+    """The lowest glog severity that reaches the terminal with the current settings."""
+    if logging_.logtostderr or logging_.alsologtostderr:
+        return int(logging_.minloglevel)
+    return max(int(logging_.minloglevel), int(logging_.stderrthreshold))
+
+
+@contextmanager
+def captured_colmap_log() -> Iterator[ColmapLog]:
+    """Capture pycolmap's (glog) messages of every level during the block into temporary files
+    (removed at the end); the terminal keeps showing what it showed before (the CLI's
+    ``--verbose`` setting, see ``registration.configure_colmap_logging``)."""
+    import pycolmap
+
+    lg = pycolmap.logging
+    saved = {k: getattr(lg, k) for k in ("logtostderr", "alsologtostderr", "minloglevel",
+                                         "stderrthreshold")}
+    threshold = _stderr_threshold(lg)
+    _remove_stale_glog_dirs(Path(tempfile.gettempdir()))
+    folder = Path(tempfile.mkdtemp(prefix=f"{_GLOG_DIR_PREFIX}{os.getpid()}_"))
+    log = ColmapLog(folder)
+    try:
+        lg.logtostderr, lg.alsologtostderr = False, False
+        lg.minloglevel, lg.stderrthreshold = 0, threshold
+        log.start()
+        yield log
+    finally:
+        log.stop()
+        for key, value in saved.items():
+            setattr(lg, key, value)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def run_log_text(lines: Sequence[str], colmap_lines: Sequence[str]) -> str:
+    """The run's log file: the package's records, then pycolmap's own messages (marked)."""
+    out = list(lines)
+    if colmap_lines:
+        out.append(f"---- pycolmap's own log (glog, {len(colmap_lines)} lines; "
+                   "format [IWEF]yyyymmdd hh:mm:ss.uuuuuu thread file:line] msg) ----")
+        out += [f"pycolmap: {ln}" for ln in colmap_lines]
+    return "\n".join(out) + "\n"
+
+
+def progress_enabled(enabled: bool) -> bool:
+    """Progress bars are shown when asked for (not ``--quiet``) and stderr is a terminal."""
+    isatty = getattr(sys.stderr, "isatty", None)
+    return bool(enabled and isatty is not None and isatty())
+
+
+def progress_bar(enabled: bool, desc: str, **kw: Any) -> tqdm[Any]:
+    """A tqdm bar on stderr, disabled unless :func:`progress_enabled` (not left on screen)."""
+    kw.setdefault("leave", False)
+    return tqdm(desc=desc, disable=not progress_enabled(enabled), file=sys.stderr, **kw)

@@ -25,3 +25,14 @@ def small_dataset(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-
 
     out = tmp_path_factory.mktemp("small_dataset") / "data"
     return make_demo_dataset(out, DemoDataOptions(small=True, seed=0, progress=False))
+
+
+@pytest.fixture(scope="session")
+def small_scale_run(small_dataset, tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+    """One real ``scale`` run (run_scale, no progress bars) of ``small_dataset``, made once per
+    session; its ScaleResult (``out_dir`` holds every output). Tests must not modify it."""
+    from sfm_laserscale.demo import scale_inputs_for
+    from sfm_laserscale.pipeline import ScaleOptions, run_scale
+
+    out = tmp_path_factory.mktemp("small_scale_run") / "out"
+    return run_scale(scale_inputs_for(small_dataset), out, ScaleOptions(progress=False))

@@ -104,6 +104,56 @@ def _estimate(
     }
 
 
+def _pair_fit(pair: str, joint: bool, per_image: dict[str, tuple[float, float]]) -> dict[str, Any]:
+    """methods.pcm_joint.pairs[k] as writer.pcm_joint_to_dict makes it."""
+    if not joint:
+        return {
+            "pair": pair,
+            "joint": False,
+            "reason": "only 2 usable image(s), the joint fit needs 3",
+            "scale": None,
+            "sigma_random": None,
+            "sigma_rig": None,
+            "direction_cam": None,
+            "direction_off_axis_deg": None,
+            "direction_sigma_deg": None,
+            "origins_m": None,
+            "chi2": None,
+            "dof": 0,
+            "n_images": 0,
+            "n_rejected": 0,
+            "images": [],
+        }
+    vals = [v for v, _ in per_image.values()]
+    return {
+        "pair": pair,
+        "joint": True,
+        "reason": None,
+        "scale": statistics.fmean(vals),
+        "sigma_random": 4.1e-4,
+        "sigma_rig": 0.0,
+        "direction_cam": [0.0262, 0.0, 0.99966],
+        "direction_off_axis_deg": 1.5013,
+        "direction_sigma_deg": 0.0081,
+        "origins_m": [[-0.05, 0.0, 0.0], [0.05, 0.0, 0.0]],
+        "chi2": 2.93,
+        "dof": 4 * len(vals) - 6,
+        "n_images": len(vals),
+        "n_rejected": 0,
+        "images": [
+            {
+                "image": k,
+                "implied_scale": v,
+                "implied_sigma": sd,
+                "chi2": 0.7,
+                "rejected": False,
+                "reason": None,
+            }
+            for k, (v, sd) in per_image.items()
+        ],
+    }
+
+
 def make_report(
     n_images: int = 6,
     bias: dict[str, float] | None = None,
@@ -221,7 +271,12 @@ def make_report(
         m: _block(m, per[m], used[m], rejected[m], n_est[m], notes_pj if m == "pcm_joint" else None)
         for m in per
     }
-    methods["pcm_joint"]["midpoint_fallback"] = fallback
+    joint = not fallback and len(per["pcm_joint"]) >= 3
+    methods["pcm_joint"].update(
+        joint=joint,
+        midpoint_fallback=not joint,
+        pairs=[_pair_fit(PAIR, joint, per["pcm_joint"])],
+    )
     report = {
         "version": "test",
         "scale": dict(methods["fcm"]),
@@ -581,21 +636,9 @@ def test_overlay_names_do_not_collide() -> None:
 
 
 @pytest.fixture(scope="module")
-def real_run(small_dataset: Any, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return run_small(small_dataset, tmp_path_factory)
-
-
-def run_small(small_dataset: Any, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The small data set's scale run, made once per session (shared with the browser test)."""
-    from sfm_laserscale.demo import scale_inputs_for
-    from sfm_laserscale.pipeline import ScaleOptions, run_scale
-
-    out = tmp_path_factory.getbasetemp() / "report_real_run"
-    if not (out / "report.json").is_file():
-        run_scale(
-            scale_inputs_for(small_dataset), out, ScaleOptions(progress=False), overwrite=True
-        )
-    return out
+def real_run(small_scale_run: Any) -> Path:
+    """The output folder of the session's shared real run (conftest.small_scale_run)."""
+    return Path(small_scale_run.out_dir)
 
 
 def test_real_run_html_agrees_with_json(real_run: Path) -> None:
@@ -625,3 +668,105 @@ def test_real_run_overlay_files_are_legible_size(real_run: Path) -> None:
     for path in sorted((real_run / "overlays").glob("*.jpg")):
         img = cv2.imread(str(path))
         assert img is not None and max(img.shape[:2]) >= 1200
+
+
+def test_real_run_pcm_joint_pair_fit_in_json_and_page(real_run: Path) -> None:
+    """report.json carries the explicit joint flag and each pair's fit; the page shows them."""
+    report = json.loads((real_run / "report.json").read_text())
+    pj = report["methods"]["pcm_joint"]
+    assert pj["joint"] is True and pj["midpoint_fallback"] is False
+    (pair,) = pj["pairs"]
+    assert pair["pair"] == "L1+L2" and pair["joint"] is True and pair["reason"] is None
+    assert pair["n_images"] + pair["n_rejected"] == len(pair["images"]) == 3
+    # one pair: the fused PCM-joint value is that pair's scale
+    assert pj["value"] == pytest.approx(pair["scale"], rel=1e-12)
+    # the small data set's L1/L2 beams are tilted 1.5° (rig.toml: direction (0, 0.02618, 0.99966))
+    assert pair["direction_off_axis_deg"] == pytest.approx(1.5, abs=0.1)
+    assert pair["direction_cam"] == pytest.approx([0.0, 0.0261769, 0.9996573], abs=2e-3)
+    html = (real_run / "report.html").read_text()
+    assert 'id="pcm-joint-pairs"' in html and 'data-pair="L1+L2"' in html
+    nums = _numbers(html)
+    assert nums[("methods", "pcm_joint", "pairs", 0, "scale")][0] == pair["scale"]
+    assert "pcm_joint_fallback" not in {w["code"] for w in report["warnings"]}
+
+
+def test_real_run_log_holds_pycolmap_messages(real_run: Path, small_dataset: Any) -> None:
+    """pycolmap's own (glog) lines of the registrations end up in run.log, marked as its."""
+    log = (real_run / "run.log").read_text()
+    head, marker, tail = log.partition("---- pycolmap's own log (glog")
+    assert marker, "no pycolmap section in run.log"
+    assert "sfm_laserscale.pipeline: run finished" in head
+    lines = [ln for ln in tail.splitlines()[1:] if ln]
+    assert lines and all(ln.startswith("pycolmap: ") for ln in lines)
+    n_laser = len(list(small_dataset.laser_images_dir.glob("*.png")))
+    # one SIFT extractor per laser image registered (registration.extract_sift)
+    sift = [ln for ln in lines if "Creating SIFT CPU feature extractor" in ln]
+    assert len(sift) == n_laser
+    assert all(re.match(r"pycolmap: [IWEF]\d{8} \d\d:\d\d:\d\d\.\d{6} ", ln) for ln in lines)
+
+
+def test_pcm_joint_fallback_from_the_explicit_field(tmp_path: Path) -> None:
+    """The fallback warning follows methods.pcm_joint.joint, not the notes' wording."""
+    joint = make_report(fallback=False)
+    joint["methods"]["pcm_joint"]["notes"] = ["fewer than 3 images: midpoint approximation"]
+    assert "pcm_joint_fallback" not in _codes(annotate(joint))
+    fell = make_report(fallback=True)
+    fell["methods"]["pcm_joint"]["notes"] = ["joint beam direction from 5 images"]
+    (msg,) = _codes(annotate(fell))["pcm_joint_fallback"]
+    assert "(L1+L2: only 2 usable image(s), the joint fit needs 3)" in msg
+    html = render_html(fell, tmp_path)
+    assert check_html(html, fell) == []
+    assert "midpoint fallback</span>" in html and 'data-pair="L1+L2" class="bad"' in html
+    # a report.json from before the field: the old key and the fallback's first note
+    old = make_report(fallback=True)
+    for key in ("joint", "pairs"):
+        del old["methods"]["pcm_joint"][key]
+    (msg,) = _codes(annotate(old))["pcm_joint_fallback"]
+    assert "(fewer than 3 images: midpoint approximation)" in msg
+
+
+def test_check_catches_missing_methods_plot(rendered: tuple[dict[str, Any], str]) -> None:
+    report, html = rendered
+    no_plot = re.sub(r'<img data-plot="methods"[^>]*>', "", html)
+    assert check_html(no_plot, report) == ["methods plot missing"]
+
+
+def test_overlay_draws_reprojected_model_points() -> None:
+    """Registration points are the inliers' 3D points projected with the pose (known pixels)."""
+    from sfm_laserscale.model import Pose
+    from sfm_laserscale.report.overlays import reprojected_points
+    from sfm_laserscale.report.style import INLIER_HEX, hex_to_bgr
+
+    cam = Camera(1, "PINHOLE", 640, 480, np.array([500.0, 500.0, 320.0, 240.0]))
+    pose = Pose(np.eye(3), np.array([0.0, 0.0, 2.0]))  # world origin 2 units ahead
+    xyz = np.array([[0.4, -0.2, 0.0], [-0.8, 0.4, 0.0], [0.0, 0.0, -5.0]])  # last: behind
+    xy = reprojected_points(cam, pose, xyz)
+    assert xy == pytest.approx(np.array([[420.0, 190.0], [120.0, 340.0]]))
+    rgb = np.full((480, 640, 3), 90, np.uint8)
+    img = draw_overlay(rgb, cam, _rig(), [], {}, xy, 0.5, 20.0)
+    f = 1200 / 640
+    green = np.array(hex_to_bgr(INLIER_HEX))
+    for x, y in xy:
+        px = img[int(round(y * f - 0.5)), int(round(x * f - 0.5))].astype(int)
+        assert np.abs(px - (0.65 * green + 0.35 * 90)).max() < 12
+    red = draw_overlay(rgb, cam, _rig(), [], {}, xy, 0.5, 20.0, pose_rejected=True)
+    px = red[int(round(190 * f - 0.5)), int(round(420 * f - 0.5))].astype(int)
+    assert px[2] > px[1] + 40  # red, not green
+
+
+def test_outlier_images_listed_under_checks(tmp_path: Path) -> None:
+    """Images fusion left out are listed per method (headline first) with fusion's reason."""
+    report = make_report(outlier=True)
+    (x,) = report["diagnostics"]["outlier_images"]
+    assert (x["method"], x["image"], x["headline"]) == ("direct3d", "dive_001.jpg", False)
+    assert x["reason"].startswith("image scale deviates from the consensus by 9.1")
+    assert x["scale"] == pytest.approx(0.3153 * (1 - 0.045))
+    html = render_html(report, tmp_path)
+    assert check_html(html, report) == []
+    table = html[html.index('id="outlier-images"') :].split("</table>")[0]
+    assert "dive_001.jpg" in table and "Direct 3D" in table
+    assert make_report(outlier=False)["diagnostics"]["outlier_images"] == []
+    head = make_report(outlier=True)
+    head["scale"] = dict(head["methods"]["direct3d"])
+    annotate(head)
+    assert head["diagnostics"]["outlier_images"][0]["headline"] is True

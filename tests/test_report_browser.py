@@ -13,7 +13,7 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-from test_report import make_report, run_small, write_overlays
+from test_report import make_report, write_overlays
 
 from sfm_laserscale.report.html import render_html
 from sfm_laserscale.report.validate import check_html
@@ -43,6 +43,7 @@ window.addEventListener('load', function () {
   Array.prototype.forEach.call(document.querySelectorAll('.scroll, .card'), function (e) {
     if (e.scrollWidth > e.clientWidth + 1) { wide = true; } });
   b.setAttribute('data-probe-overflow', String(wide));
+  b.setAttribute('data-probe-height', String(document.documentElement.scrollHeight));
 });
 </script>"""
 
@@ -90,6 +91,7 @@ def browse(
         "images": int(attrs.get("data-probe-images", "-1")),
         "broken": json.loads(attrs.get("data-probe-broken", "null").replace("&quot;", '"')),
         "overflow": attrs.get("data-probe-overflow"),
+        "height": int(attrs.get("data-probe-height", "0")),
         "dom": res.stdout,
     }
     if screenshot is not None:
@@ -102,10 +104,11 @@ def browse(
     return out
 
 
-def _check_screenshot(path: Path) -> None:
+def _check_screenshot(path: Path, height: int | None = None) -> None:
     img = cv2.imread(str(path))
     assert img is not None, f"no screenshot at {path}"
     assert img.shape[1] == 1400
+    assert height is None or img.shape[0] == height
     assert float(img.std()) > 20.0  # not a blank page
 
 
@@ -155,10 +158,8 @@ def test_browser_reports_script_errors(tmp_path: Path) -> None:
     assert any("noSuchFunction" in m for m in got["console"])
 
 
-def test_real_run_report_in_chromium(
-    small_dataset: Any, tmp_path_factory: pytest.TempPathFactory, tmp_path: Path, artifacts: Path
-) -> None:
-    run = run_small(small_dataset, tmp_path_factory)
+def test_real_run_report_in_chromium(small_scale_run: Any, tmp_path: Path, artifacts: Path) -> None:
+    run = Path(small_scale_run.out_dir)
     report = json.loads((run / "report.json").read_text())
     html = (run / "report.html").read_text()
     shot = artifacts / "report_real_run.png"
@@ -168,7 +169,13 @@ def test_real_run_report_in_chromium(
     assert got["broken"] == []
     assert got["images"] == 2 + sum(1 for im in report["images"] if im["overlay"])
     assert got["overflow"] == "false"
+    assert check_html(got["dom"], report) == []
     _check_screenshot(shot)
+    # the whole page too (the probe measured its height), kept with the page itself
+    height = min(got["height"], 20000)
+    full = artifacts / "report_real_run_full.png"
+    browse(html, tmp_path / "browser_full", full, size=f"1400,{height}")
+    _check_screenshot(full, height)
     shutil.copy(run / "report.html", artifacts / "report_real_run.html")
     # the overlays are not blank photographs: they carry the drawn legend strip
     first = next(iter(sorted((run / "overlays").glob("*.jpg"))))

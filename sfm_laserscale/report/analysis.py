@@ -156,6 +156,36 @@ def direction_residual_flags(
     ]
 
 
+def outlier_images(report: dict[str, Any]) -> list[dict[str, Any]]:
+    """Per method, the images whose combined estimate fusion left out (outliers), with the
+    reason fusion gave; the headline method first."""
+    head = report["scale"]["method"]
+    order = sorted(
+        report["methods"],
+        key=lambda m: (m != head, METHOD_ORDER.index(m) if m in METHOD_ORDER else 99),
+    )
+    out = []
+    for m in order:
+        block = report["methods"][m]
+        for row in block.get("per_image", []):
+            if row["used"]:
+                continue
+            why = next(
+                (r["reason"] for r in block.get("rejected", []) if r["image"] == row["image"]),
+                "left out by fusion",
+            )
+            out.append(
+                {
+                    "method": m,
+                    "image": row["image"],
+                    "scale": row["scale"],
+                    "reason": why,
+                    "headline": m == head,
+                }
+            )
+    return out
+
+
 def diagnostics(report: dict[str, Any], opt: ReportChecksOptions) -> dict[str, Any]:
     """The ``diagnostics`` block: consistency numbers and the checks' verdicts."""
     per_laser = per_laser_summary(report, opt)
@@ -173,6 +203,7 @@ def diagnostics(report: dict[str, Any], opt: ReportChecksOptions) -> dict[str, A
         "laser_deviation_max_abs_pct": float(max(abs(d) for d in all_dev)) if all_dev else None,
         "image_spread_pct": {m: image_spread_pct(b) for m, b in report["methods"].items()},
         "direction_residuals": direction_residual_flags(report, opt),
+        "outlier_images": outlier_images(report),
         "mesh_model_agreement_pct": _relative(mma, 1.0),
         "mesh_model_limit_pct": _relative(opt.mesh_agreement_max, 1.0),
         "mesh_model_agreement_ok": (
@@ -341,21 +372,35 @@ def _check_warnings(report: dict[str, Any], opt: ReportChecksOptions) -> list[di
             )
         )
     pj = report["methods"].get("pcm_joint")
-    if pj is not None and pj.get("midpoint_fallback"):
+    if pj is not None and pcm_joint_fell_back(pj):
         level = "warning" if report["scale"]["method"] == "pcm_joint" else "note"
-        notes = pj.get("notes") or ["midpoint approximation"]
-        # fallback notes: [head, one reason per rig pair, fusion notes...] (pcm_joint._fallback)
-        pair_reasons = notes[1 : 1 + len(report["rig"]["pairs"])]
-        why = "; ".join(pair_reasons) or notes[0]
         out.append(
             _w(
                 level,
                 "pcm_joint_fallback",
-                f"PCM-joint fell back to the midpoint approximation ({why}); it can "
-                "overestimate the separation by up to 1.5 % on rough terrain.",
+                f"PCM-joint fell back to the midpoint approximation ({pcm_joint_why(pj)}); it "
+                "can overestimate the separation by up to 1.5 % on rough terrain.",
             )
         )
     return out
+
+
+def pcm_joint_fell_back(block: dict[str, Any]) -> bool:
+    """Whether PCM-joint returned the midpoint approximation: the explicit ``joint`` field
+    (``midpoint_fallback`` in a report.json without it)."""
+    if "joint" in block:
+        return not block["joint"]
+    return bool(block.get("midpoint_fallback"))
+
+
+def pcm_joint_why(block: dict[str, Any]) -> str:
+    """Why no pair was fitted jointly, from the per-pair fits (each pair's reason)."""
+    pairs = block.get("pairs")
+    if pairs is None:  # a report.json without per-pair fits: the fallback's first note
+        return (block.get("notes") or ["midpoint approximation"])[0]
+    if not pairs:
+        return "the rig has no parallel pair"
+    return "; ".join(f"{p['pair']}: {p['reason'] or 'not fitted'}" for p in pairs)
 
 
 def warnings(
@@ -402,4 +447,10 @@ def annotate(report: dict[str, Any], opt: ReportChecksOptions | None = None) -> 
     return report
 
 
-__all__ = ["METHOD_LABELS", "METHOD_ORDER", "ReportChecksOptions", "annotate"]
+__all__ = [
+    "METHOD_LABELS",
+    "METHOD_ORDER",
+    "ReportChecksOptions",
+    "annotate",
+    "pcm_joint_fell_back",
+]

@@ -19,7 +19,12 @@ from jinja2 import Environment, PackageLoader, StrictUndefined, select_autoescap
 from markupsafe import Markup
 
 from sfm_laserscale.report import format as fm
-from sfm_laserscale.report.analysis import METHOD_LABELS, METHOD_ORDER, annotate
+from sfm_laserscale.report.analysis import (
+    METHOD_LABELS,
+    METHOD_ORDER,
+    annotate,
+    pcm_joint_fell_back,
+)
 from sfm_laserscale.report.plots import methods_plot, per_laser_method, per_laser_plot
 from sfm_laserscale.report.style import laser_color_hex
 
@@ -127,6 +132,7 @@ def render_html(report: dict[str, Any], out_dir: Path) -> str:
             colors={name: laser_color_hex(i) for i, name in enumerate(lasers)},
             pairs=["+".join(p) for p in report["rig"]["pairs"]],
             find=find,
+            fell_back=pcm_joint_fell_back,
             plot_method=per_laser_method(report),
         )
     )

@@ -1,4 +1,5 @@
-"""Overlay images: detected spots, predicted beam lines, registration inliers, per-laser scale.
+"""Overlay images: detected spots, predicted beam lines, the model points used for registration
+(reprojected with the estimated pose), per-laser scale.
 
 Everything is drawn AFTER resizing the photograph to the output size (longer side between
 ``min_side`` and ``max_side``), so lines and text have the same legible size for a 640×480 and
@@ -18,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sfm_laserscale.detection import beam_polyline_px
-from sfm_laserscale.model import Camera, Spot
+from sfm_laserscale.model import Camera, Pose, Spot
 from sfm_laserscale.report.style import INLIER_HEX, WARNING_HEX, hex_to_bgr, laser_color_bgr
 from sfm_laserscale.rig import Rig
 
@@ -98,11 +99,28 @@ def _label(
     cv2.putText(img, text, org, _FONT, scale, color, thick, cv2.LINE_AA)
 
 
-def _draw_inliers(img: NDArray[np.uint8], xy: NDArray[np.float64], f: float, st: _Style) -> None:
+def reprojected_points(
+    camera: Camera, cam_from_world: Pose, xyz_world: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """(K, 2) COLMAP pixels of the (K', 3) model points in front of the camera (K <= K')."""
+    xyz_cam = cam_from_world.transform(np.asarray(xyz_world, dtype=np.float64).reshape(-1, 3))
+    front = xyz_cam[:, 2] > 1e-12
+    if not np.any(front):
+        return np.empty((0, 2), dtype=np.float64)
+    return camera.project(xyz_cam[front]).reshape(-1, 2)
+
+
+def _draw_inliers(
+    img: NDArray[np.uint8],
+    xy: NDArray[np.float64],
+    f: float,
+    st: _Style,
+    color: tuple[int, int, int] = _INLIER,
+) -> None:
     r = int(round(st.dot * (1 << _SHIFT)))
     layer = img.copy()
     for p in np.asarray(xy, dtype=np.float64).reshape(-1, 2)[:3000]:
-        cv2.circle(layer, _fp(p, f), r, _INLIER, -1, cv2.LINE_AA, _SHIFT)
+        cv2.circle(layer, _fp(p, f), r, color, -1, cv2.LINE_AA, _SHIFT)
     cv2.addWeighted(layer, 0.65, img, 0.35, 0.0, dst=img)
 
 
@@ -242,6 +260,7 @@ def _legend_entries(
     scales: Mapping[str, float],
     rejected: Mapping[str, str],
     n_inliers: int | None,
+    pose_rejected: bool = False,
 ) -> list[tuple[str, tuple[int, int, int], str]]:
     """(kind, colour, text) per legend box: one per laser, then inliers and beams."""
     seen = {s.laser for s in spots}
@@ -255,8 +274,10 @@ def _legend_entries(
             out.append(("spot", laser_color_bgr(i), f"{name} no FCM"))
         else:
             out.append(("spot", laser_color_bgr(i), f"{name} not found"))
-    if n_inliers is not None:
-        out.append(("dot", _INLIER, f"inliers ({n_inliers})"))
+    if n_inliers is not None and pose_rejected:
+        out.append(("dot", _RED, f"keypoints of the rejected pose ({n_inliers})"))
+    elif n_inliers is not None:
+        out.append(("dot", _INLIER, f"model points used, reprojected ({n_inliers})"))
     if any(las.calibrated for las in rig.lasers):
         out.append(("line", _WHITE, "predicted beams"))
     return out
@@ -309,19 +330,24 @@ def draw_overlay(
     *,
     min_side: int = 1200,
     rejected: Mapping[str, str] | None = None,
+    pose_rejected: bool = False,
 ) -> NDArray[np.uint8]:
     """(H', W' + legend, 3) BGR overlay: the photo resized so its longer side lies in
     [``min_side``, ``max_side``], annotated, with a legend strip below it.
 
-    ``scales``: FCM scale per laser for the legend; ``rejected``: laser -> reason (drawn red).
+    ``inliers_xy``: (K, 2) COLMAP pixels of the registration's points (green): the model points
+    used, reprojected (:func:`reprojected_points`); with ``pose_rejected`` the keypoints of a
+    rejected pose (red). ``scales``: FCM scale per laser for the legend; ``rejected``: laser ->
+    reason (drawn red).
     """
     rejected = rejected or {}
     img, f = _resize(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), min_side, max_side)
     st = _Style.for_size(max(img.shape[:2]))
     if inliers_xy is not None:
-        _draw_inliers(img, inliers_xy, f, st)
+        _draw_inliers(img, inliers_xy, f, st, _RED if pose_rejected else _INLIER)
     lines = _draw_beams(img, camera, rig, f, st, min_range_m, max_range_m)
     _draw_spots(img, rig, spots, f, st, rejected, lines)
     n_in = None if inliers_xy is None else int(np.asarray(inliers_xy).reshape(-1, 2).shape[0])
-    strip = _legend_strip(_legend_entries(rig, spots, scales, rejected, n_in), img.shape[1], st)
+    entries = _legend_entries(rig, spots, scales, rejected, n_in, pose_rejected)
+    strip = _legend_strip(entries, img.shape[1], st)
     return np.vstack([img, strip])

@@ -15,7 +15,11 @@ from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 
-from sfm_laserscale.report.analysis import METHOD_LABELS, METHOD_ORDER  # noqa: E402
+from sfm_laserscale.report.analysis import (  # noqa: E402
+    METHOD_LABELS,
+    METHOD_ORDER,
+    pcm_joint_fell_back,
+)
 from sfm_laserscale.report.style import WARNING_HEX, laser_color_hex  # noqa: E402
 
 _DPI = 150
@@ -274,7 +278,7 @@ def methods_plot(report: dict[str, Any]) -> bytes | None:
         return None
     images = [im for im in report["images"] if im.get("fused")]
     methods = [m for m in METHOD_ORDER if any(m in im["fused"] for im in images)]
-    if report["methods"].get("pcm_joint", {}).get("midpoint_fallback"):
+    if pcm_joint_fell_back(report["methods"].get("pcm_joint", {"joint": True})):
         methods = [m for m in methods if m != "pcm_joint"]
     if not images or not methods:
         return None

@@ -160,7 +160,7 @@ def calibration_png(z: Mapping[str, F64], labels: Mapping[str, str], title: str)
 
 # --------------------------------------------------------------------------- from a result
 
-HEATMAP_METHODS = ("fcm_fused", "fcm_checked", "pcm", "pcm_joint_view", "direct3d",
+HEATMAP_METHODS = ("fcm_fused", "fcm", "pcm", "pcm_joint_view", "direct3d",
                    "davis_tusting")
 BOX_METHODS = ("fcm", "fcm_fused", "pcm", "pcm_joint", "pcm_joint_view", "direct3d",
                "davis_tusting")

@@ -1,8 +1,9 @@
 """Checks of a rendered report.html against its report.json dict (stdlib HTML parser).
 
 - every ``<img>`` holds a non-empty PNG or JPEG data URI that decodes;
-- every overlay named in report.json is on the page, and the per-laser plot is there whenever
-  an image has an estimate to plot;
+- every overlay named in report.json is on the page, the per-laser plot is there whenever an
+  image has an estimate to plot, and the methods plot whenever there is a scale and an image
+  has a per-image value of a method;
 - every number ``<span data-key=… data-value=…>`` holds the value at that path of report.json,
   and its text shows that value (to the number of decimals displayed).
 """
@@ -130,6 +131,18 @@ def _expected_plot(report: dict[str, Any]) -> bool:
     )
 
 
+def _expected_methods_plot(report: dict[str, Any]) -> bool:
+    value = report["scale"].get("value")
+    if not isinstance(value, (int, float)) or not math.isfinite(value):
+        return False
+    return any(
+        f.get("scale") is not None
+        for im in report["images"]
+        for m, f in im.get("fused", {}).items()
+        if m in ("fcm", "pcm", "direct3d")
+    )
+
+
 def check_html(html: str, report: dict[str, Any]) -> list[str]:
     """Problems of a rendered report (empty list: the page is complete and agrees with json)."""
     page = parse_report_html(html)
@@ -146,6 +159,8 @@ def check_html(html: str, report: dict[str, Any]) -> list[str]:
     plots = {img.get("data-plot") for img in page.images}
     if _expected_plot(report) and "per-laser" not in plots:
         problems.append("per-laser plot missing")
+    if _expected_methods_plot(report) and "methods" not in plots:
+        problems.append("methods plot missing")
     for key, value, text in page.numbers:
         why = number_problem(report, key, value, text)
         if why is not None:

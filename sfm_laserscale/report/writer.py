@@ -8,11 +8,13 @@ import csv
 import json
 import logging
 import math
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import cv2
+import numpy as np
 
 from sfm_laserscale import __version__
 from sfm_laserscale.geometry import qvec_from_rotmat
@@ -22,13 +24,15 @@ from sfm_laserscale.io.meshes import write_scaled_mesh
 from sfm_laserscale.io.openmvg import write_scaled_openmvg_sfm_data
 from sfm_laserscale.io.spots_csv import write_spots_csv
 from sfm_laserscale.io.transforms import write_matrix_4x4, write_sim3
+from sfm_laserscale.provenance import progress_bar
 from sfm_laserscale.report.analysis import ReportChecksOptions, annotate
 from sfm_laserscale.report.html import render_html
-from sfm_laserscale.report.overlays import draw_overlay
+from sfm_laserscale.report.overlays import draw_overlay, reprojected_points
 from sfm_laserscale.report.validate import check_html
 
 if TYPE_CHECKING:
     from sfm_laserscale.fusion import FusedScale
+    from sfm_laserscale.methods.pcm_joint import PairJointFit, PcmJointResult
     from sfm_laserscale.pipeline import ImageRun, LoadedInputs, ScaleInputs, ScaleOptions, Timer
 
 logger = logging.getLogger(__name__)
@@ -58,6 +62,8 @@ def fused_to_dict(f: FusedScale) -> dict[str, Any]:
         "std_random": _num(f.std_random),
         "std_systematic": _num(f.std_systematic),
         "birge_ratio": _num(f.birge_ratio),
+        "birge_p": _num(f.birge_p),
+        "sigma_inflated": bool(f.inflated),
         "reason": f.reason,
         "images_used": list(f.images_used),
         "per_image": [
@@ -66,11 +72,54 @@ def fused_to_dict(f: FusedScale) -> dict[str, Any]:
         ],
         "rejected": [{"image": i, "laser": la, "reason": why} for i, la, why in f.rejected],
     }
-    if f.method == "pcm_joint":
-        # pcm_joint._fallback puts "...: midpoint approximation" first in its notes; the
-        # FusedScale does not carry PcmJointResult.joint itself.
-        d["midpoint_fallback"] = bool(f.notes) and f.notes[0].endswith("midpoint approximation")
     return d
+
+
+def _pair_fit_dict(f: PairJointFit) -> dict[str, Any]:
+    """One parallel pair's joint fit (``joint`` False: not fitted, ``reason`` says why)."""
+    direction = np.asarray(f.direction_cam, dtype=np.float64).reshape(-1)
+    ok = direction.size == 3 and bool(np.all(np.isfinite(direction)))
+    off_axis = math.degrees(math.acos(min(1.0, abs(float(direction[2]))))) if ok else None
+    origins = np.asarray(f.origins_m, dtype=np.float64)
+    return {
+        "pair": f.pair,
+        "joint": bool(f.joint),
+        "reason": f.reason,
+        "scale": _num(f.scale),
+        "sigma_random": _num(f.sigma_random),
+        "sigma_rig": _num(f.sigma_rig),
+        "direction_cam": [float(v) for v in direction] if ok else None,
+        "direction_off_axis_deg": off_axis,
+        "direction_sigma_deg": _num(f.direction_sigma_deg),
+        "origins_m": (
+            origins.tolist() if origins.shape == (2, 3) and np.all(np.isfinite(origins)) else None
+        ),
+        "chi2": _num(f.chi2),
+        "dof": int(f.dof),
+        "n_images": sum(1 for im in f.images if not im.rejected),
+        "n_rejected": sum(1 for im in f.images if im.rejected),
+        "images": [
+            {
+                "image": im.image,
+                "implied_scale": _num(im.implied_scale),
+                "implied_sigma": _num(im.implied_sigma),
+                "chi2": _num(im.chi2),
+                "rejected": bool(im.rejected),
+                "reason": im.reason,
+            }
+            for im in f.images
+        ],
+    }
+
+
+def pcm_joint_to_dict(result: PcmJointResult) -> dict[str, Any]:
+    """Keys added to ``methods.pcm_joint``: whether the joint fit ran (``joint``; False: the
+    midpoint approximation was returned, ``midpoint_fallback``) and each pair's fit."""
+    return {
+        "joint": bool(result.joint),
+        "midpoint_fallback": not result.joint,
+        "pairs": [_pair_fit_dict(f) for f in result.pairs],
+    }
 
 
 def _estimate_dicts(run: ImageRun) -> list[dict[str, Any]]:
@@ -134,8 +183,10 @@ def build_report(
     fused: dict[str, FusedScale],
     checks: dict[str, float],
     timer: Timer,
+    pcm_joint: PcmJointResult | None = None,
 ) -> dict[str, Any]:
-    """report.json content (DESIGN.md §6 keys, plus inputs, options and the report's checks)."""
+    """report.json content (DESIGN.md §6 keys, plus inputs, options and the report's checks);
+    ``pcm_joint``: the joint fit behind ``fused["pcm_joint"]`` (its per-pair details)."""
     report: dict[str, Any] = {
         "version": __version__,
         "scale": fused_to_dict(headline),
@@ -160,6 +211,8 @@ def build_report(
         },
         "options": {"method": options.method, "seed": options.seed},
     }
+    if pcm_joint is not None and "pcm_joint" in report["methods"]:
+        report["methods"]["pcm_joint"].update(pcm_joint_to_dict(pcm_joint))
     # Derived keys (per-image fused values, deviations, diagnostics, warnings) are computed
     # from the JSON form of the dict, so the HTML and report.json hold the same numbers.
     report = json.loads(json.dumps(report, allow_nan=False))
@@ -223,6 +276,18 @@ def _overlay_name(image: str, taken: set[str]) -> str:
     return name
 
 
+def _registration_points(run: ImageRun) -> tuple[np.ndarray | None, bool]:
+    """The overlay's registration points: the inliers' model points reprojected with the
+    accepted pose, or the inlier keypoints of a rejected pose (True); None without matches."""
+    reg = run.registration
+    if reg is None or run.camera is None:
+        return None, False
+    pose = reg.cam_from_world
+    if pose is None:
+        return (reg.inlier_xy_px if len(reg.inlier_xy_px) else None), True
+    return reprojected_points(run.camera, pose, reg.inlier_xyz), False
+
+
 def _write_overlays(
     out: Path,
     runs: Sequence[ImageRun],
@@ -234,22 +299,23 @@ def _write_overlays(
     folder.mkdir()
     written: dict[str, str] = {}
     by_name = {im["name"]: im for im in report["images"]}
-    for run in runs:
+    for run in progress_bar(options.progress, "overlays", iterable=runs, unit="img"):
         if run.camera is None:
             continue
         rgb = read_rgb(run.path)
         scales, rejected = _overlay_labels(by_name[run.name])
-        inl = None if run.registration is None else run.registration.inlier_xy_px
+        points, pose_rejected = _registration_points(run)
         img = draw_overlay(
             rgb,
             run.camera,
             loaded.rig,
             run.spots,
             scales,
-            inl,
+            points,
             options.detection.min_range_m,
             options.detection.max_range_m,
             rejected=rejected,
+            pose_rejected=pose_rejected,
         )
         name = _overlay_name(run.name, set(written.values()))
         cv2.imwrite(str(folder / name), img, [cv2.IMWRITE_JPEG_QUALITY, 88])
@@ -257,14 +323,18 @@ def _write_overlays(
     return written
 
 
-def _write_scaled(out: Path, inputs: ScaleInputs, loaded: LoadedInputs, scale: float) -> None:
+def _write_scaled(
+    out: Path, inputs: ScaleInputs, loaded: LoadedInputs, scale: float, progress: bool
+) -> None:
     scaled = out / "scaled"
     scaled.mkdir()
     if loaded.model.source_format == "openmvg":
         write_scaled_openmvg_sfm_data(inputs.model, scaled / "model" / "sfm_data.json", scale)
     else:
         write_scaled_colmap_model(inputs.model, scaled / "model", scale)
-    write_scaled_mesh(inputs.mesh, scaled, scale)
+    size = inputs.mesh.stat().st_size
+    with progress_bar(progress, "scaled mesh", total=size, unit="B", unit_scale=True) as bar:
+        write_scaled_mesh(inputs.mesh, scaled, scale, progress=bar.update)
 
 
 def write_outputs(
@@ -278,16 +348,21 @@ def write_outputs(
     timer: Timer,
 ) -> None:
     """Every file of DESIGN.md §6 into ``out`` (report.json last, with final timings)."""
+    t0 = time.perf_counter()
     write_estimates_csv(out / "estimates.csv", runs)
     write_spots_csv(out / "spots.csv", {r.name: list(r.spots) for r in runs})
     if math.isfinite(headline.value):
         write_sim3(out / "transform.sim3", headline.value)
         write_matrix_4x4(out / "transform_4x4.txt", headline.value)
-        _write_scaled(out, inputs, loaded, headline.value)
+        _write_scaled(out, inputs, loaded, headline.value, options.progress)
     overlays = _write_overlays(out, runs, loaded, options, report) if options.overlays else {}
     for im in report["images"]:
         im["overlay"] = overlays.get(im["name"])
     report["timings_s"] = timer.as_dict()
+    # the caller's "write" stage is still open: count this function's own time
+    report["timings_s"]["write"] = round(
+        max(report["timings_s"].get("write", 0.0), time.perf_counter() - t0), 4
+    )
     text = json.dumps(report, indent=2, allow_nan=False) + "\n"
     # The page is rendered from the very JSON written, so every number in it is in report.json.
     html = render_html(json.loads(text), out)
@@ -297,4 +372,4 @@ def write_outputs(
     (out / "report.json").write_text(text, encoding="utf-8")
 
 
-__all__ = ["build_report", "summary_line", "write_outputs", "fused_to_dict"]
+__all__ = ["build_report", "fused_to_dict", "pcm_joint_to_dict", "summary_line", "write_outputs"]

@@ -52,11 +52,11 @@ import numpy as np
 import plyfile
 import pycolmap
 from numpy.typing import NDArray
-from tqdm import tqdm
 
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.geometry import qvec_from_rotmat, umeyama_sim3
 from sfm_laserscale.model import Camera, Pose
+from sfm_laserscale.provenance import progress_bar
 from sfm_laserscale.rig import Laser, Pair, Rig, rig_to_toml
 from sfm_laserscale.synthetic.render import (
     RenderOptions,
@@ -448,7 +448,9 @@ def run_sfm(images_dir: Path, image_names: list[str], database_path: Path, spars
     matching = pycolmap.FeatureMatchingOptions()
     matching.use_gpu = False
     mapping = _mapping_options(options.seed)
-    steps = tqdm(total=3, desc="SfM", disable=not options.progress, leave=False)
+    # one step each: SIFT extraction, matching, incremental mapping (pycolmap reports no finer
+    # progress); shown only on a terminal and without --quiet (provenance.progress_bar)
+    steps = progress_bar(options.progress, "SfM (features, matching, mapping)", total=3)
     with _colmap_log_level(options.colmap_log):
         t0 = time.perf_counter()
         pycolmap.extract_features(database_path, images_dir, image_names=image_names,
@@ -628,8 +630,8 @@ def _render_all(raycaster: SceneRaycaster, camera: Camera, ref: _Views, las: _Vi
     """Render and write every reference and laser image (fills ``las.spots``)."""
     seeds = np.random.SeedSequence([options.seed, 7]).spawn(len(ref.names) + len(las.names))
     jobs = [(True, k) for k in range(len(ref.names))] + [(False, k) for k in range(len(las.names))]
-    for (is_ref, k), seed in tqdm(list(zip(jobs, seeds, strict=True)), desc="render",
-                                  disable=not options.progress, leave=False):
+    for (is_ref, k), seed in progress_bar(options.progress, "render",
+                                          iterable=list(zip(jobs, seeds, strict=True))):
         rng = np.random.default_rng(seed)
         if is_ref:
             img = render_reference(raycaster, camera, ref.poses[k], options, rng)
