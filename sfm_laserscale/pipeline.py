@@ -8,7 +8,7 @@ import logging
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,10 +22,14 @@ from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
 from sfm_laserscale.io.meshes import TriangleMesh, load_mesh
 from sfm_laserscale.io.models import load_model, load_model_features
 from sfm_laserscale.io.spots_csv import read_spots_csv
-from sfm_laserscale.methods.pcm_joint import PcmJointOptions, estimate_pcm_joint
-from sfm_laserscale.model import Camera, Pose, SparseModel, Spot
+from sfm_laserscale.methods.pcm_joint import (
+    PcmJointOptions,
+    PcmJointResult,
+    estimate_pcm_joint,
+)
+from sfm_laserscale.model import Camera, SparseModel, Spot
 from sfm_laserscale.provenance import captured_log, provenance
-from sfm_laserscale.raycast import MeshRaycaster, pixel_rays
+from sfm_laserscale.raycast import MeshRaycaster, SpotCastOptions, SpotHit, cast_spots
 from sfm_laserscale.registration import (
     DescriptorIndex,
     IndexOptions,
@@ -42,7 +46,6 @@ from sfm_laserscale.uncertainty import (
     EstimationOptions,
     ImageEstimates,
     ImageObservation,
-    SpotHit,
     estimate_image,
 )
 
@@ -77,6 +80,7 @@ class ScaleOptions:
     tie: TieOptions = field(default_factory=TieOptions)
     index: IndexOptions = field(default_factory=IndexOptions)
     registration: RegistrationOptions = field(default_factory=RegistrationOptions)
+    spot_cast: SpotCastOptions = field(default_factory=SpotCastOptions)
     estimation: EstimationOptions = field(default_factory=EstimationOptions)
     fusion: FusionOptions = field(default_factory=FusionOptions)
 
@@ -156,9 +160,16 @@ def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
     if inputs.spots is not None:
         manual = read_spots_csv(inputs.spots, [li.name for li in laser_images], rig.names)
     features = load_model_features(
-        model, inputs.model, inputs.database, inputs.images, inputs.features, options.tie
+        model, inputs.model, inputs.database, inputs.images, inputs.features,
+        replace(options.tie, progress=options.progress)
     )
-    index = build_descriptor_index(model, features, options.index)
+    try:
+        index = build_descriptor_index(model, features, options.index)
+    except InputError as exc:  # name the descriptor source as well as the image
+        source = inputs.database or inputs.features or inputs.images
+        if source is None or exc.path is None:
+            raise
+        raise InputError(f"image {exc.path}: {exc.problem}", source) from exc
     return LoadedInputs(model, mesh, rig, laser_images, manual, index)
 
 
@@ -172,24 +183,6 @@ def _spots_for(
         return tuple(manual), None, missing
     det = detect_spots(rgb, camera, loaded.rig, options.detection)
     return det.spots, det, dict(det.missing)
-
-
-def _cast_spots(
-    spots: Sequence[Spot], camera: Camera, cam_from_world: Pose, caster: MeshRaycaster
-) -> tuple[tuple[SpotHit, ...], dict[str, str]]:
-    if not spots:
-        return (), {}
-    xy = np.array([[s.x, s.y] for s in spots], dtype=np.float64)
-    res = caster.cast(*pixel_rays(camera, cam_from_world.inverse(), xy))
-    hits: list[SpotHit] = []
-    reasons: dict[str, str] = {}
-    for i, spot in enumerate(spots):
-        if not res.hit[i]:
-            reasons[spot.laser] = "ray through the spot misses the mesh"
-            continue
-        hits.append(SpotHit(laser=spot.laser, xy_px=xy[i], sigma_px=spot.sigma_px,
-                            hit_world=res.xyz[i], normal_world=res.normal[i]))
-    return tuple(hits), reasons
 
 
 def _failed(image: LaserImage, reason: str, **kw: Any) -> ImageRun:
@@ -220,10 +213,12 @@ def process_image(image: LaserImage, loaded: LoadedInputs, caster: MeshRaycaster
     if not reg.success or pose is None:
         return _failed(image, reg.reason or "registration failed", **done)
     with timer("raycast"):
-        hits, miss = _cast_spots(spots, camera, pose, caster)
-    spot_reasons.update(miss)
+        cast = cast_spots(spots, camera, pose, caster, options.spot_cast)
+    hits = cast.hits
+    spot_reasons.update(cast.reasons)
     if not hits:
-        why = "no laser spot found" if not spots else "no spot ray hits the mesh"
+        why = ("no laser spot found" if not spots else
+               "no usable spot hit on the mesh: " + "; ".join(sorted(set(cast.reasons.values()))))
         return _failed(image, why, **done)
     obs = ImageObservation(image=image.name, camera=camera, cam_from_world=pose,
                            pose_covariance=reg.covariance, hits=hits)
@@ -249,9 +244,16 @@ def _observations(runs: Sequence[ImageRun]) -> list[ImageObservation]:
     return out
 
 
-def fuse_methods(
-    runs: Sequence[ImageRun], rig: Rig, options: ScaleOptions
-) -> tuple[FusedScale, dict[str, FusedScale]]:
+@dataclass(frozen=True)
+class MethodFusion:
+    """Every method fused over the images, the headline among them and the PCM-joint fits."""
+
+    headline: FusedScale
+    methods: dict[str, FusedScale]
+    pcm_joint: PcmJointResult
+
+
+def fuse_all(runs: Sequence[ImageRun], rig: Rig, options: ScaleOptions) -> MethodFusion:
     """Fuse every method over the images; pick the headline (FCM when the rig allows, else
     PCM-joint when its joint beam direction was estimated, else PCM)."""
     per_image = [r.estimates for r in runs if r.estimates is not None]
@@ -264,7 +266,15 @@ def fuse_methods(
     if not rig.has_fcm:
         order = [m for m in order if m != "fcm"] or pcm
     headline = next((fused[m] for m in order if np.isfinite(fused[m].value)), fused[order[0]])
-    return headline, fused
+    return MethodFusion(headline, fused, joint)
+
+
+def fuse_methods(
+    runs: Sequence[ImageRun], rig: Rig, options: ScaleOptions
+) -> tuple[FusedScale, dict[str, FusedScale]]:
+    """(headline, every method's fusion): :func:`fuse_all` without the PCM-joint fits."""
+    res = fuse_all(runs, rig, options)
+    return res.headline, res.methods
 
 
 def run_scale(
@@ -275,29 +285,38 @@ def run_scale(
 ) -> ScaleResult:
     """The whole ``scale`` command: estimate, fuse and write every output of DESIGN.md §6."""
     from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
+    from sfm_laserscale.provenance import captured_colmap_log, run_log_text
     from sfm_laserscale.report.writer import build_report, summary_line, write_outputs
 
     check_output_dir(out_dir, overwrite)
     timer = Timer()
-    with captured_log() as log_lines:
+    with captured_log() as log_lines, captured_colmap_log() as colmap_log:
         logger.info("sfm-laserscale %s: scale %s", __version__, inputs)
         with timer("load"):
             loaded = load_inputs(inputs, options)
             caster = MeshRaycaster(loaded.mesh.vertices, loaded.mesh.triangles)
-        runs = [process_image(li, loaded, caster, options, timer)
-                for li in _progress(loaded.laser_images, options.progress, "laser images")]
-        headline, fused = fuse_methods(runs, loaded.rig, options)
+        runs = []
+        for li in _progress(loaded.laser_images, options.progress, "laser images"):
+            t0 = time.perf_counter()
+            runs.append(process_image(li, loaded, caster, options, timer))
+            what = runs[-1].reason and f"no estimate ({runs[-1].reason})"
+            logger.info("laser image %s (%s): %s in %.2f s", li.name, li.path,
+                        what or "estimated", time.perf_counter() - t0)
+        fusion = fuse_all(runs, loaded.rig, options)
+        headline, fused, joint = fusion.headline, fusion.methods, fusion.pcm_joint
         checks = {"mesh_model_agreement": caster.median_distance(loaded.model.points_xyz)
                   / max(loaded.model.extent, 1e-12)}
         logger.info("timings so far: %s", timer.as_dict())
         with staged_output_dir(out_dir, overwrite) as tmp, timer("write"):
-            report = build_report(inputs, options, loaded, runs, headline, fused, checks, timer)
+            report = build_report(inputs, options, loaded, runs, headline, fused, checks, timer,
+                                  pcm_joint=joint)
             report["provenance"] = provenance(
                 [inputs.model, inputs.mesh, inputs.rig, inputs.database, inputs.spots,
                  *(li.path for li in loaded.laser_images)], options)
             write_outputs(tmp, inputs, loaded, runs, headline, report, options, timer)
-            logger.info("run finished: %s", timer.as_dict())
-            (tmp / "run.log").write_text("\n".join(log_lines) + "\n", encoding="utf-8")
+            logger.info("run finished: %s", report["timings_s"])
+            (tmp / "run.log").write_text(run_log_text(log_lines, colmap_log.lines()),
+                                         encoding="utf-8")
     success = bool(np.isfinite(headline.value))
     summary = summary_line(headline, runs)
     return ScaleResult(
@@ -312,8 +331,6 @@ def run_scale(
 
 
 def _progress(items: Sequence[Any], enabled: bool, desc: str) -> Iterator[Any]:
-    import sys
+    from sfm_laserscale.provenance import progress_bar
 
-    from tqdm import tqdm
-
-    yield from tqdm(items, desc=desc, disable=not enabled or not sys.stderr.isatty(), unit="img")
+    yield from progress_bar(enabled, desc, iterable=items, unit="img")

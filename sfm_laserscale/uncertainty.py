@@ -41,6 +41,7 @@ from sfm_laserscale.methods.baselines import direct3d_scale, direct3d_scale_batc
 from sfm_laserscale.methods.fcm import fcm_scale, fcm_scale_batch
 from sfm_laserscale.methods.pcm import pcm_scale, pcm_scale_batch
 from sfm_laserscale.model import Camera, Pose
+from sfm_laserscale.raycast import SpotHit
 from sfm_laserscale.rig import Rig
 
 logger = logging.getLogger(__name__)
@@ -48,17 +49,6 @@ logger = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
 METHODS = ("fcm", "pcm", "direct3d")
 RIG_PARAM_SUFFIXES = ("origin_x", "origin_y", "direction_a", "direction_b")
-
-
-@dataclass(frozen=True)
-class SpotHit:
-    """One laser spot of an image and its first mesh hit (world frame, model units)."""
-
-    laser: str
-    xy_px: F64  # (2,) COLMAP pixel convention
-    sigma_px: float  # 1-σ per axis, pixels
-    hit_world: F64  # (3,) model units
-    normal_world: F64  # (3,) unit mesh normal at the hit
 
 
 @dataclass(frozen=True)

@@ -15,9 +15,9 @@ from sfm_laserscale.pipeline import ScaleOptions, run_scale
 
 
 @pytest.fixture(scope="module")
-def baseline(small_dataset: Any, tmp_path_factory: pytest.TempPathFactory) -> Any:
-    out = tmp_path_factory.mktemp("pipe") / "run"
-    return run_scale(scale_inputs_for(small_dataset), out, ScaleOptions(progress=False))
+def baseline(small_scale_run: Any) -> Any:
+    """The session's real scale run of the small dataset (tests/conftest.py)."""
+    return small_scale_run
 
 
 def test_scale_matches_truth(baseline: Any, small_dataset: Any) -> None:

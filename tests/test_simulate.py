@@ -199,10 +199,15 @@ def test_reported_sigma_matches_the_monte_carlo_spread(noise_cells, config: str)
     # FCM unbiased: mean normalised error within 0.1 + 3 standard errors of 0
     for name in ["fcm", *[k for k in lasers if k.startswith("fcm:")]]:
         assert abs(m[name]["z_mean"]) < 0.1 + 3 / np.sqrt(m[name]["n"]), (name, m[name])
-    # the per-view fused σ of the pipeline (Birge-inflated) is conservative, never too small
-    fused = m["fcm_fused"]
-    assert 0.7 <= fused["ratio"] <= 1.0 and 0.95 <= fused["coverage95"] <= 1.0, fused
-    assert fused["predicted_sigma"] > m["fcm_fused_gls"]["predicted_sigma"]
+    # the per-view fused σ the pipeline reports (inflated only for an improbable χ²) holds too
+    for name in ("fcm_fused", "pcm_fused"):
+        fused = m.get(name)
+        if fused is None:
+            continue
+        assert RATIO[0] <= fused["ratio"] <= RATIO[1], (name, fused)
+        assert COVER[0] <= fused["coverage95"] <= COVER[1], (name, fused)
+        assert abs(fused["z_mean"]) < 0.1 + 3 / np.sqrt(fused["n"]), (name, fused)
+        assert fused["predicted_sigma"] < 1.05 * m[name + "_gls"]["predicted_sigma"]
 
 
 @pytest.fixture(scope="module")
@@ -218,12 +223,12 @@ def tilted(seafloor) -> Any:
 def test_sigma_is_calibrated_on_tilted_views_and_rough_terrain(tilted, config: str,
                                                                area: str) -> None:
     m = _methods(tilted, config, area=area)
-    for name in ("fcm_checked", "pcm_checked", "fcm_fused_gls"):
+    for name in ("fcm", "pcm", "fcm_fused", "fcm_fused_gls"):
         v = m[name]
         assert v["n"] >= 100, name
         assert RATIO[0] <= v["z_rms"] <= RATIO[1], (name, v)  # views differ: RMS of z
         assert COVER[0] <= v["coverage95"] <= COVER[1], (name, v)
-    assert abs(m["fcm_checked"]["z_mean"]) < 0.1 + 3 / np.sqrt(m["fcm_checked"]["n"])
+    assert abs(m["fcm"]["z_mean"]) < 0.1 + 3 / np.sqrt(m["fcm"]["n"])
     if config == "A":  # Direct 3D and Davis & Tusting are wrong on tilted views
         assert abs(m["direct3d"]["bias"]) > 5 and abs(m["davis_tusting"]["bias"]) > 1
 
@@ -238,7 +243,7 @@ def test_fcm_is_unbiased_at_every_view_antithetic_pairs(seafloor) -> None:
                              antithetic=True, progress=False)
     res = simulate(SimulationInputs(), opts, seafloor)
     for s in res.results["settings"]:
-        fcm, fused = s["methods"]["fcm_checked"], s["methods"]["fcm_fused_gls"]
+        fcm, fused = s["methods"]["fcm"], s["methods"]["fcm_fused_gls"]
         assert fcm["n_pairs"] >= 30 and fused["n_pairs"] == 9, s["setting"]
         assert fcm["pair_bias_max_sigma"] < 0.1, (s["setting"], fcm)
         assert fcm["pair_bias_mean_sigma"] < 0.02, (s["setting"], fcm)

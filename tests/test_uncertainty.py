@@ -179,12 +179,14 @@ def test_mc_single_laser_fcm_sigma_is_calibrated_and_unbiased(mc_setup):
 def test_mc_per_image_fused_fcm_sigma_is_calibrated(mc_setup):
     ie, fcm, _, pose_factor = mc_setup
     cov = ie.covariance["fcm"]
-    w = np.linalg.solve(cov, np.ones(4))
+    s = np.array([e.scale for e in ie.of("fcm")])
+    cov_u = cov / np.outer(s**2, s**2)  # the fusion's GLS is of u = 1/s
+    w = np.linalg.solve(cov_u, np.ones(4))
     w /= w.sum()
     combo = combine_image(ie, "fcm", FusionOptions())
     assert combo is not None and len(combo.used) == 4
-    assert combo.value == pytest.approx(w @ [e.scale for e in ie.of("fcm")], rel=1e-12)
-    ratio = (fcm @ w).std(ddof=1) / combo.sigma
+    assert combo.value == pytest.approx(1.0 / (w @ (1.0 / s)), rel=1e-12)
+    ratio = (1.0 / ((1.0 / fcm) @ w)).std(ddof=1) / combo.sigma
     assert 0.9 <= ratio <= 1.15, ratio
     # shared pose error: with a large pose error the image value is much worse than four
     # independent estimates would give, and the MC agrees with the joint covariance

@@ -568,16 +568,22 @@ def _combine(states: Sequence[_PairState], others: Sequence[PairJointFit],
     q, sigma_eff = z, sigma_rand
     n_images = len({im for st in states for im in st.inputs})
     notes = _notes(states, others, sigma_sys, n_images)
-    if options.birge_inflation and np.isfinite(birge) and birge > 1.0:
+    p_value = float(stats.chi2.sf(chi2, dof)) if dof > 0 else float("nan")
+    # as fusion.fuse: inflate only when the scatter is improbable under the stated sigmas
+    inflated = bool(options.birge_inflation and np.isfinite(p_value) and birge > 1.0
+                    and p_value < options.fusion.birge_p_value)
+    if inflated:
         q, sigma_eff = float(stats.t.ppf(1.0 - alpha / 2, dof)), sigma_rand * birge
-        notes.append(f"Birge ratio {birge:.2f} > 1 (dof {dof}): random sigma inflated")
+        notes.append(f"scatter beyond the stated sigmas (Birge ratio {birge:.2f}, dof {dof}, "
+                     f"p = {p_value:.2g}): random sigma inflated")
     half = float(np.hypot(q * sigma_eff, z * sigma_sys))
     rejected = [(im.image, f.pair, im.reason or "rejected")
                 for f in [st.fit for st in states] for im in f.images if im.rejected]
     used = tuple(dict.fromkeys(im for st in states for im in st.inputs))
     return FusedScale(value, float(np.hypot(sigma_eff, sigma_sys)), (value - half, value + half),
                       1.0 / value, METHOD, sum(len(st.inputs) for st in states), len(rejected),
-                      _per_image(states), rejected, notes, sigma_eff, sigma_sys, birge, used)
+                      _per_image(states), rejected, notes, sigma_eff, sigma_sys, birge,
+                      p_value, inflated, used)
 
 
 def _fallback(observations: Sequence[ImageObservation], rig: Rig, fits: Sequence[PairJointFit],

@@ -11,8 +11,9 @@ Every trial goes through the same functions as a real laser image in ``pipeline.
    pose covariance (one thread, seeded);
 4. laser spots: each beam's exact first hit on the mesh, projected when it is inside the image
    and not occluded from the camera, plus N(0, σ_l²) per axis; the detector's σ is σ_l;
-5. ``pipeline._cast_spots`` (MeshRaycaster with the ESTIMATED pose) → ``uncertainty.
-   estimate_image`` (FCM per laser, PCM and Direct 3D per pair, first-order σ) →
+5. ``raycast.cast_spots`` (MeshRaycaster with the ESTIMATED pose, the depth-edge check of
+   ``scale``) → ``uncertainty.estimate_image`` (FCM per laser, PCM and Direct 3D per pair,
+   first-order σ) →
    ``fusion.fuse`` per view; ``methods.pcm_joint.estimate_pcm_joint`` over groups of views;
    ``methods.baselines.davis_tusting_scale`` for four beams parallel to the optical axis.
 
@@ -47,9 +48,10 @@ Reported methods (results.json, per setting): ``fcm`` / ``pcm`` / ``direct3d`` s
 the σ and interval the pipeline reports; ``<m>_fused_gls``: the same value with the σ before the
 Birge inflation (interval ±1.96 σ); ``pcm_joint``: ``estimate_pcm_joint`` over ``group_size``
 views; ``pcm_group``: the midpoint PCM fused over the same views; ``pcm_joint_view``: each
-view's scale with the jointly fitted beam direction; ``davis_tusting``. ``fcm_checked``,
-``fcm_fused_checked``, ``pcm_checked``: the same with spots failing :func:`edge_check` dropped
-(a proposed check, not in ``scale``). PCM-joint is not run in the noise table (identical views
+view's scale with the jointly fitted beam direction; ``davis_tusting``. Every method drops
+the spots ``scale`` drops (``raycast.on_depth_edge``: the mesh is not planar within 3 σ of the
+spot); ``fcm_unchecked``, ``fcm_fused_unchecked``, ``pcm_unchecked`` keep them, to show
+what the check removes. PCM-joint is not run in the noise table (identical views
 leave the beam direction undetermined).
 """
 
@@ -83,8 +85,13 @@ from sfm_laserscale.fusion import FusedScale, FusionOptions, fuse
 from sfm_laserscale.methods.baselines import davis_tusting_scale
 from sfm_laserscale.methods.pcm_joint import PcmJointOptions, estimate_pcm_joint
 from sfm_laserscale.model import Camera, Pose, Spot
-from sfm_laserscale.pipeline import _cast_spots
-from sfm_laserscale.raycast import MeshRaycaster, pixel_rays
+from sfm_laserscale.raycast import (
+    MeshRaycaster,
+    SpotCastOptions,
+    SpotHit,
+    cast_spots,
+    pixel_rays,
+)
 from sfm_laserscale.registration import PoseOptions, estimate_pose
 from sfm_laserscale.rig import Rig, rig_from_dict
 from sfm_laserscale.synthetic.dataset import make_rig
@@ -93,7 +100,6 @@ from sfm_laserscale.uncertainty import (
     EstimationOptions,
     ImageEstimates,
     ImageObservation,
-    SpotHit,
     estimate_image,
 )
 
@@ -116,13 +122,6 @@ MODE_DEFAULTS: dict[str, dict[str, Any]] = {
 SPOT_MARGIN_PX = 8.0
 #: Davis & Tusting query points: a 5 × 5 grid over the central half of the image.
 DT_GRID = 5
-#: Edge check of a spot (``edge_check``): rays on a ring of this many σ around the spot …
-EDGE_RING_SIGMA = 3.0
-EDGE_RING_RAYS = 8
-#: … may leave the tangent plane by this fraction of the range change the plane predicts.
-EDGE_TOLERANCE = 0.5
-
-
 def pinhole_camera(width: int, height: int, focal_px: float) -> Camera:
     """PINHOLE camera with the principal point at the image centre."""
     if width < 16 or height < 16 or not focal_px > 0:
@@ -232,6 +231,7 @@ class SimulationOptions:
     workers: int = 1
     progress: bool = True
     pose: PoseOptions = field(default_factory=PoseOptions)
+    spot_cast: SpotCastOptions = field(default_factory=SpotCastOptions)
     estimation: EstimationOptions = field(default_factory=EstimationOptions)
     fusion: FusionOptions = field(default_factory=FusionOptions)
 
@@ -604,10 +604,10 @@ class LaserOutcome:
     fused: dict[str, tuple[float, float, float, float, float]]  # method -> _fused_tuple
     davis_tusting: float  # NaN unless the rig allows it
     depth_difference_m: dict[str, float]  # pair -> (X_2 − X_1)·v of the true hits, metres
-    observation: ImageObservation | None  # what the estimators saw (for PCM-joint groups)
-    edge_spots: tuple[str, ...] = ()  # lasers whose spot failed the edge check (edge_check)
-    fused_checked: dict[str, tuple[float, float, float, float, float]] = field(
-        default_factory=dict)  # per-view fusion without the edge spots (when there are any)
+    observation: ImageObservation | None  # what scale's estimators see (for PCM-joint groups)
+    edge_spots: tuple[str, ...] = ()  # lasers whose spot failed the depth-edge check
+    fused_unchecked: dict[str, tuple[float, float, float, float, float]] = field(
+        default_factory=dict)  # per-view fusion WITH the edge spots (when there are any)
 
 
 @dataclass(frozen=True)
@@ -715,71 +715,55 @@ def _davis_tusting(ctx: TrialContext, rig: Rig, spots: Sequence[Spot], pose: Pos
 
 def _fused_tuple(f: FusedScale) -> tuple[float, float, float, float, float]:
     """(value, std, ci lo, ci hi, σ without the Birge inflation)."""
-    birge = f.birge_ratio if math.isfinite(f.birge_ratio) else 1.0
-    gls = math.hypot(f.std_random / max(birge, 1.0), f.std_systematic)
+    gls = math.hypot(f.std_random / (f.birge_ratio if f.inflated else 1.0), f.std_systematic)
     return (float(f.value), float(f.std), float(f.ci95[0]), float(f.ci95[1]), gls)
 
 
-def edge_check(caster: MeshRaycaster, camera: Camera, pose: Pose, hit: SpotHit) -> bool:
-    """True when the spot's first-order σ cannot hold: rays ``EDGE_RING_SIGMA`` σ around the
-    spot meet the mesh off the hit's tangent plane by more than ``EDGE_TOLERANCE`` × the range
-    change the plane predicts and more than the ring's radius at the hit's range (a depth edge,
-    a crest seen edge-on, an occlusion boundary; creases between facets stay well below).
-
-    Not part of ``scale`` (a proposal): the estimates are reported with and without it.
-    """
-    if not hit.sigma_px > 0:
-        return False
-    theta = np.linspace(0.0, 2 * np.pi, EDGE_RING_RAYS, endpoint=False)
-    ring = hit.xy_px[None] + EDGE_RING_SIGMA * hit.sigma_px * np.column_stack(
-        [np.cos(theta), np.sin(theta)])
-    origins, dirs = pixel_rays(camera, pose.inverse(), ring)
-    res = caster.cast(origins, dirs)
-    centre = pose.center
-    t0 = float(np.linalg.norm(hit.hit_world - centre))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_plane = ((hit.hit_world - centre) @ hit.normal_world) / (dirs @ hit.normal_world)
-    t_mesh = np.where(res.hit, res.distance, np.inf)
-    nonlinear = float(np.max(np.abs(t_mesh - t_plane)))
-    linear = float(np.max(np.abs(t_plane - t0)))
-    radius = EDGE_RING_SIGMA * hit.sigma_px * t0 / camera.focal_px  # ring on a facing plane
-    return not nonlinear <= max(EDGE_TOLERANCE * linear, radius)
-
-
-def _checked(ctx: TrialContext, setting: LaserSetting, obs: ImageObservation,
-             edges: Sequence[str]) -> dict[str, tuple[float, float, float, float, float]]:
-    """Per-view fusions of the estimates left when the edge spots are dropped."""
-    kept = tuple(h for h in obs.hits if h.laser not in edges)
-    if not kept:
-        return {}
-    est = estimate_image(replace(obs, hits=kept), setting.rig, ctx.options.estimation)
+def _unchecked(ctx: TrialContext, setting: LaserSetting, obs: ImageObservation,
+               edge_hits: Sequence[SpotHit]) -> dict[str, tuple[float, float, float, float, float]]:
+    """Per-view fusions with the depth-edge spots put back (what ``scale`` would do without
+    its check)."""
+    est = estimate_image(replace(obs, hits=(*obs.hits, *edge_hits)), setting.rig,
+                         ctx.options.estimation)
     return {m: _fused_tuple(fuse([est], m, ctx.options.fusion)) for m in METHODS if est.of(m)}
 
 
 def evaluate_setting(ctx: TrialContext, index: int, truth: Sequence[TrueSpot], job: ViewJob,
                      pose: Pose, covariance: F64 | None, z: F64) -> LaserOutcome:
-    """Noisy spots (z: (L, 2) unit normals) → ray casts with the estimated pose → estimates."""
+    """Noisy spots (z: (L, 2) unit normals) → ray casts with the estimated pose → estimates.
+
+    The estimates (``estimates``) include the depth-edge spots, flagged in ``edge_spots``, so
+    that the rows can report each method with and without them; ``fused`` and ``observation``
+    are what ``scale`` computes (without them).
+    """
     setting = ctx.settings[index]
     sigma = setting.sigma_l_px
     spots = [Spot(t.laser, float(t.xy_px[0] + sigma * z[j, 0]), float(t.xy_px[1] + sigma * z[j, 1]),
                   1.0, sigma, "synthetic")
              for j, t in enumerate(truth) if t.xy_px is not None]
     reasons = {t.laser: t.reason for t in truth if t.reason is not None}
-    hits, miss = _cast_spots(spots, ctx.camera, pose, ctx.caster)
-    reasons.update(miss)
+    cast = cast_spots(spots, ctx.camera, pose, ctx.caster, ctx.options.spot_cast)
+    edges = tuple(h.laser for h in cast.edge_hits)
+    reasons.update({las: why for las, why in cast.reasons.items() if las not in edges})
     k = ctx.options.true_scale
     depth = _depth_differences(setting.rig, truth,
                                Pose(job.cam_from_world.R, job.cam_from_world.t / k), k)
-    if not hits:
+    order = {s.laser: i for i, s in enumerate(spots)}
+    every = tuple(sorted((*cast.hits, *cast.edge_hits), key=lambda h: order[h.laser]))
+    if not every:
         return LaserOutcome(index, reasons, None, {}, float("nan"), depth, None)
     name = f"v{job.index}" + ("m" if job.sign < 0 else "")
-    obs = ImageObservation(name, ctx.camera, pose, covariance, hits)
-    est = estimate_image(obs, setting.rig, ctx.options.estimation)
-    fused = {m: _fused_tuple(fuse([est], m, ctx.options.fusion)) for m in METHODS if est.of(m)}
+    obs = ImageObservation(name, ctx.camera, pose, covariance, cast.hits)
+    est = estimate_image(replace(obs, hits=every), setting.rig, ctx.options.estimation)
+    fused = {}
+    if cast.hits:
+        kept = estimate_image(obs, setting.rig, ctx.options.estimation) if edges else est
+        fused = {m: _fused_tuple(fuse([kept], m, ctx.options.fusion))
+                 for m in METHODS if kept.of(m)}
     dt = _davis_tusting(ctx, setting.rig, spots, pose)
-    edges = tuple(h.laser for h in hits if edge_check(ctx.caster, ctx.camera, pose, h))
-    checked = _checked(ctx, setting, obs, edges) if edges else {}
-    return LaserOutcome(index, reasons, est, fused, dt, depth, obs, edges, checked)
+    unchecked = _unchecked(ctx, setting, obs, cast.edge_hits) if edges else {}
+    return LaserOutcome(index, reasons, est, fused, dt, depth, obs if cast.hits else None, edges,
+                        unchecked)
 
 
 def _pose_errors(true_model: Pose, est: Pose, k: float) -> tuple[float, float]:
@@ -928,7 +912,7 @@ class SampleTable:
             interval: tuple[float, float], view: tuple[int, int, int, float, float],
             depth: float = float("nan"), edge: int = 0) -> None:
         """One estimate; view = (view id, round, sign, pitch, roll); edge: 0 normal, 1 only
-        without the edge check (it uses an edge spot), −1 only with it (``edge_check``)."""
+        without the depth-edge check (it uses an edge spot), −1 only with it (as ``scale``)."""
         floats = (value, sigma, interval[0], interval[1], view[3], view[4], depth)
         for c, v in zip(self.FLOATS, floats, strict=True):
             self._f[c].append(float(v))
@@ -975,13 +959,13 @@ def _ingest_fused(col: Collected, key: SettingKey, v: tuple[int, int, int, float
                   out: LaserOutcome) -> None:
     """Per-view fusions (pipeline σ and σ without Birge inflation), with and without the edge
     spots when the view has any."""
-    variants = [(out.fused, 1 if out.edge_spots else 0)]
+    variants = [(out.fused, -1 if out.edge_spots else 0)]
     if out.edge_spots:
-        variants.append((out.fused_checked, -1))
+        variants.append((out.fused_unchecked, 1))
     for fused, edge in variants:
         for m, (value, std, lo, hi, gls) in fused.items():
             if not math.isfinite(value):
-                col.rejected[(key, f"{m}_fused")] += edge >= 0
+                col.rejected[(key, f"{m}_fused")] += edge <= 0
                 continue
             col.table.add(key, f"{m}_fused", "", value, std, (lo, hi), v, edge=edge)
             col.table.add(key, f"{m}_fused_gls", "", value, gls, _interval(value, gls), v,
@@ -1129,20 +1113,20 @@ def add_groups(col: Collected, results: Iterable[GroupResult]) -> None:
 # --------------------------------------------------------------------------- statistics
 
 #: Methods in the order of tables and figures.
-METHOD_ORDER = ("fcm", "fcm_checked", "fcm_fused", "fcm_fused_checked", "fcm_fused_gls",
-                "pcm", "pcm_checked", "pcm_fused", "pcm_fused_gls", "pcm_group", "pcm_joint",
+METHOD_ORDER = ("fcm", "fcm_unchecked", "fcm_fused", "fcm_fused_unchecked", "fcm_fused_gls",
+                "pcm", "pcm_unchecked", "pcm_fused", "pcm_fused_gls", "pcm_group", "pcm_joint",
                 "pcm_joint_view", "direct3d", "direct3d_fused", "direct3d_fused_gls",
                 "davis_tusting")
-CHECKED = "_checked"
+UNCHECKED = "_unchecked"
 
 
 def method_rows(t: SampleTable, a: dict[str, NDArray[Any]], method: str) -> NDArray[np.bool_]:
-    """Rows of a reported method; ``<m>_checked`` is ``<m>`` with the edge check applied."""
-    checked = method.endswith(CHECKED)
-    base = method[: -len(CHECKED)] if checked else method
+    """Rows of a reported method; ``<m>_unchecked`` is ``<m>`` with the depth-edge spots."""
+    unchecked = method.endswith(UNCHECKED)
+    base = method[: -len(UNCHECKED)] if unchecked else method
     if base not in t.vocab:
         return np.zeros(len(a["value"]), dtype=bool)
-    edge_ok = a["edge"] <= 0 if checked else a["edge"] >= 0
+    edge_ok = a["edge"] >= 0 if unchecked else a["edge"] <= 0
     return np.asarray((a["method"] == t.code(base)) & edge_ok)
 #: Methods with a laser or pair name per row (also reported per laser / pair).
 PER_SUB = ("fcm", "pcm", "direct3d", "pcm_joint_view")
@@ -1258,7 +1242,7 @@ def overall(col: Collected, options: SimulationOptions) -> dict[str, dict[str, A
 
 
 #: Methods drawn in the grid heatmaps.
-MAP_METHODS = ("fcm_fused", "fcm_checked", "pcm", "pcm_joint_view", "direct3d", "davis_tusting")
+MAP_METHODS = ("fcm_fused", "fcm", "pcm", "pcm_joint_view", "direct3d", "davis_tusting")
 
 
 def grid_maps(col: Collected, options: SimulationOptions
@@ -1294,8 +1278,9 @@ def method_label(method: str, group_size: int) -> str:
     """Human name of a reported method."""
     return {
         "fcm": "FCM single laser", "fcm_fused": "FCM fused (per view)",
-        "fcm_checked": "FCM single laser, edge check",
-        "fcm_fused_checked": "FCM fused, edge check", "pcm_checked": "PCM, edge check",
+        "fcm_unchecked": "FCM single laser, depth-edge spots kept",
+        "fcm_fused_unchecked": "FCM fused, depth-edge spots kept",
+        "pcm_unchecked": "PCM, depth-edge spots kept",
         "fcm_fused_gls": "FCM fused, σ without Birge inflation",
         "pcm": "PCM (midpoint)", "pcm_fused": "PCM fused (per view)",
         "pcm_fused_gls": "PCM fused, σ without Birge inflation",
