@@ -52,7 +52,7 @@ WRAPPED = (
     ("match", "sfm_laserscale.registration", "match_to_model"),
     ("pose", "sfm_laserscale.registration", "estimate_pose"),
     ("estimate", "sfm_laserscale.pipeline", "estimate_image"),
-    ("fuse", "sfm_laserscale.pipeline", "fuse_all|fuse_methods"),  # first that exists
+    ("fuse", "sfm_laserscale.pipeline", "fuse_all"),
     ("provenance", "sfm_laserscale.pipeline", "provenance"),
     ("report_build", "sfm_laserscale.report.writer", "build_report"),
     ("model_write", "sfm_laserscale.report.writer", "write_scaled_colmap_model"),
@@ -183,11 +183,10 @@ def instrument(rec: dict[str, Any]) -> None:
     import importlib
 
     from sfm_laserscale.raycast import MeshRaycaster
-    for stage, module, attrs in WRAPPED:
+    for stage, module, attr in WRAPPED:
         mod = importlib.import_module(module)
-        attr = next((a for a in attrs.split("|") if hasattr(mod, a)), None)
-        if attr is None:  # renamed: the stage reads 0 and the run says so
-            rec.setdefault("not_wrapped", []).append(f"{module}.{attrs}")
+        if not hasattr(mod, attr):  # renamed: the stage reads 0 and the run says so
+            rec.setdefault("not_wrapped", []).append(f"{module}.{attr}")
             continue
         setattr(mod, attr, _wrap(getattr(mod, attr), stage, rec))
     for stage, method in METHODS:

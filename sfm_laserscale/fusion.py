@@ -226,18 +226,16 @@ def _reject_images(combos: list[ImageCombination], options: FusionOptions
     return kept, dropped
 
 
-def _chi2(combos: list[ImageCombination], w: F64, g_u: F64) -> tuple[float, int]:
-    """χ² and dof of the kept images about the weighted mean of u = 1/s (full covariance); for
-    one image, its within-image χ²."""
+def _chi2(combos: list[ImageCombination], u: F64, w: F64, c_u: F64) -> tuple[float, int]:
+    """χ² and dof of the kept images' u = 1/s (n,) about their weighted mean, with their full
+    (n, n) covariance c_u (random + rig); for one image, its within-image χ²."""
     n = len(combos)
     if n == 1:
         c = combos[0]
         return (c.chi2, c.dof) if c.dof > 0 else (float("nan"), 0)
-    v = np.array([c.value for c in combos])
-    cov = np.diag([(c.weight_sigma / c.value**2) ** 2 for c in combos]) + g_u @ g_u.T
     p = np.eye(n) - np.outer(np.ones(n), w)
-    r = p @ (1.0 / v)
-    chi2 = float(r @ np.linalg.pinv(p @ cov @ p.T, rcond=1e-10, hermitian=True) @ r)
+    r = p @ u
+    chi2 = float(r @ np.linalg.pinv(p @ c_u @ p.T, rcond=1e-10, hermitian=True) @ r)
     return max(chi2, 0.0), n - 1
 
 
@@ -272,6 +270,40 @@ def fuse(estimates: Sequence[ImageEstimates], method: str, options: FusionOption
     return _combine_images(kept, method, options, n_used, rejected, per_image)
 
 
+@dataclass(frozen=True)
+class Interval:
+    """σ and confidence half-width of a fused value after the scatter test."""
+
+    sigma_random: float  # inflated by the Birge ratio when the scatter is improbable
+    std: float  # total: random and common rig parts
+    half_width: float  # of the ``confidence`` interval
+    birge_ratio: float  # √(χ²/dof), NaN without dof
+    p_value: float  # P(χ²_dof ≥ χ²), NaN without dof
+    inflated: bool
+    notes: tuple[str, ...]
+
+
+def interval(sigma_random: float, sigma_systematic: float, chi2: float, dof: int,
+             options: FusionOptions, allow_inflation: bool = True) -> Interval:
+    """Scatter test and interval: the random σ is inflated by the Birge ratio (and Student's t
+    used) only when P(χ²_dof ≥ χ²) < ``birge_p_value``; the rig part is added after."""
+    birge = float(np.sqrt(chi2 / dof)) if dof > 0 else float("nan")
+    p_value = float(stats.chi2.sf(chi2, dof)) if dof > 0 else float("nan")
+    alpha = 1.0 - options.confidence
+    z = float(stats.norm.ppf(1.0 - alpha / 2))
+    inflated = bool(allow_inflation and np.isfinite(p_value) and p_value < options.birge_p_value
+                    and birge > 1.0)
+    q, sigma_eff = z, sigma_random
+    notes: tuple[str, ...] = ()
+    if inflated:
+        q, sigma_eff = float(stats.t.ppf(1.0 - alpha / 2, dof)), sigma_random * birge
+        notes = (f"scatter beyond the stated sigmas (Birge ratio {birge:.2f}, dof {dof}, "
+                 f"p = {p_value:.2g}): random sigma inflated, Student t interval",)
+    return Interval(sigma_eff, float(np.hypot(sigma_eff, sigma_systematic)),
+                    float(np.hypot(q * sigma_eff, z * sigma_systematic)), birge, p_value,
+                    inflated, notes)
+
+
 def _combine_images(kept: list[ImageCombination], method: str, options: FusionOptions,
                     n_used: int, rejected: list[tuple[str, str, str]],
                     per_image: dict[str, tuple[float, float]]) -> FusedScale:
@@ -283,24 +315,13 @@ def _combine_images(kept: list[ImageCombination], method: str, options: FusionOp
     rand_u = np.array([c.sigma_random for c in kept]) / v**2  # (n,) random σ of u
     sigma_rand = value**2 * float(np.sqrt(w**2 @ rand_u**2))
     sigma_sys = value**2 * float(np.linalg.norm(w @ g_u))
-    chi2, dof = _chi2(kept, w, g_u)
-    birge = float(np.sqrt(chi2 / dof)) if dof > 0 else float("nan")
-    p_value = float(stats.chi2.sf(chi2, dof)) if dof > 0 else float("nan")
-    alpha = 1.0 - options.confidence
-    z = float(stats.norm.ppf(1.0 - alpha / 2))
+    chi2, dof = _chi2(kept, u, w, c_u + g_u @ g_u.T)
+    iv = interval(sigma_rand, sigma_sys, chi2, dof, options)
     notes = [f"{len(kept)} image(s), {n_used} estimate(s); systematic rig term "
-             f"{sigma_sys:.3g} (does not average down)"]
-    q, sigma_eff = z, sigma_rand
-    inflated = bool(np.isfinite(p_value) and p_value < options.birge_p_value and birge > 1.0)
-    if inflated:
-        sigma_eff = sigma_rand * birge
-        q = float(stats.t.ppf(1.0 - alpha / 2, dof))
-        notes.append(f"scatter beyond the stated sigmas (Birge ratio {birge:.2f}, dof {dof}, "
-                     f"p = {p_value:.2g}): random sigma inflated, Student t interval")
-    std = float(np.hypot(sigma_eff, sigma_sys))
-    half = float(np.hypot(q * sigma_eff, z * sigma_sys))
+             f"{sigma_sys:.3g} (does not average down)", *iv.notes]
+    std, half, birge, p_value = iv.std, iv.half_width, iv.birge_ratio, iv.p_value
     logger.debug("fused %s: %.6g ± %.3g (birge %.2f, p %.3g)", method, value, std, birge,
                  p_value)
     return FusedScale(value, std, (value - half, value + half), 1.0 / value, method, n_used,
-                      len(rejected), per_image, rejected, notes, sigma_eff, sigma_sys, birge,
-                      p_value, inflated, tuple(c.image for c in kept))
+                      len(rejected), per_image, rejected, notes, iv.sigma_random, sigma_sys,
+                      birge, p_value, iv.inflated, tuple(c.image for c in kept))

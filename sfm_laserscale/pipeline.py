@@ -28,7 +28,13 @@ from sfm_laserscale.methods.pcm_joint import (
     estimate_pcm_joint,
 )
 from sfm_laserscale.model import Camera, SparseModel, Spot
-from sfm_laserscale.provenance import captured_log, provenance
+from sfm_laserscale.provenance import (
+    captured_colmap_log,
+    captured_log,
+    progress_bar,
+    provenance,
+    run_log_text,
+)
 from sfm_laserscale.raycast import MeshRaycaster, SpotCastOptions, SpotHit, cast_spots
 from sfm_laserscale.registration import (
     DescriptorIndex,
@@ -269,14 +275,6 @@ def fuse_all(runs: Sequence[ImageRun], rig: Rig, options: ScaleOptions) -> Metho
     return MethodFusion(headline, fused, joint)
 
 
-def fuse_methods(
-    runs: Sequence[ImageRun], rig: Rig, options: ScaleOptions
-) -> tuple[FusedScale, dict[str, FusedScale]]:
-    """(headline, every method's fusion): :func:`fuse_all` without the PCM-joint fits."""
-    res = fuse_all(runs, rig, options)
-    return res.headline, res.methods
-
-
 def run_scale(
     inputs: ScaleInputs,
     out_dir: Path,
@@ -285,7 +283,6 @@ def run_scale(
 ) -> ScaleResult:
     """The whole ``scale`` command: estimate, fuse and write every output of DESIGN.md §6."""
     from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
-    from sfm_laserscale.provenance import captured_colmap_log, run_log_text
     from sfm_laserscale.report.writer import build_report, summary_line, write_outputs
 
     check_output_dir(out_dir, overwrite)
@@ -296,7 +293,8 @@ def run_scale(
             loaded = load_inputs(inputs, options)
             caster = MeshRaycaster(loaded.mesh.vertices, loaded.mesh.triangles)
         runs = []
-        for li in _progress(loaded.laser_images, options.progress, "laser images"):
+        for li in progress_bar(options.progress, "laser images", iterable=loaded.laser_images,
+                               unit="img"):
             t0 = time.perf_counter()
             runs.append(process_image(li, loaded, caster, options, timer))
             what = runs[-1].reason and f"no estimate ({runs[-1].reason})"
@@ -328,9 +326,3 @@ def run_scale(
         out_dir=out_dir,
         summary=summary,
     )
-
-
-def _progress(items: Sequence[Any], enabled: bool, desc: str) -> Iterator[Any]:
-    from sfm_laserscale.provenance import progress_bar
-
-    yield from progress_bar(enabled, desc, iterable=items, unit="img")

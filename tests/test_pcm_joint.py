@@ -438,12 +438,13 @@ def _runs(obs: list[ImageObservation], rig: Rig) -> list[Any]:
 
 @pytest.mark.parametrize("n_images, headline", [(N_VIEWS, "pcm_joint"), (2, "pcm")])
 def test_pipeline_headline_is_pcm_joint_when_available(scene, n_images, headline):
-    from sfm_laserscale.pipeline import ScaleOptions, fuse_methods
+    from sfm_laserscale.pipeline import ScaleOptions, fuse_all
 
     ter, views, pose_cov = scene
     rig = pcm_rig()
     obs = observe(ter, views[:n_images], np.random.default_rng(10), SIGMA_PX, pose_cov)
-    head, fused = fuse_methods(_runs(obs, rig), rig, ScaleOptions())
+    res = fuse_all(_runs(obs, rig), rig, ScaleOptions())
+    head, fused = res.headline, res.methods
     assert set(fused) == {"fcm", "pcm", "direct3d", "pcm_joint"}
     assert head.method == headline
     assert fused["pcm_joint"].value == pytest.approx(fuse_pcm_joint(obs, rig).value, rel=1e-12)

@@ -168,7 +168,8 @@ def _run_in_terminal(args: list[str], timeout: float = 240.0) -> tuple[int, str]
 
 def test_pipeline_bar_on_a_terminal(monkeypatch: pytest.MonkeyPatch) -> None:
     """The per-laser-image bar (detection, SIFT, matching, registration) draws on a terminal."""
-    from sfm_laserscale.pipeline import _progress
+    def _progress(items: list[int], enabled: bool, desc: str) -> Any:
+        return progress_bar(enabled, desc, iterable=items, unit="img")  # as run_scale does
 
     term = FakeTerminal()
     monkeypatch.setattr(sys, "stderr", term)

@@ -63,7 +63,7 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from sfm_laserscale.errors import InputError
-from sfm_laserscale.fusion import FusedScale, FusionOptions, fuse
+from sfm_laserscale.fusion import FusedScale, FusionOptions, fuse, interval
 from sfm_laserscale.rig import Pair, Rig
 from sfm_laserscale.uncertainty import (
     RIG_PARAM_SUFFIXES,
@@ -562,28 +562,17 @@ def _combine(states: Sequence[_PairState], others: Sequence[PairJointFit],
     sigma_sys = float(np.linalg.norm(w @ g))
     chi2 = sum(st.fit.chi2 for st in states) + chi2_between
     dof = sum(st.fit.dof for st in states) + len(states) - 1
-    birge = float(np.sqrt(chi2 / dof)) if dof > 0 else float("nan")
-    alpha = 1.0 - options.fusion.confidence
-    z = float(stats.norm.ppf(1.0 - alpha / 2))
-    q, sigma_eff = z, sigma_rand
     n_images = len({im for st in states for im in st.inputs})
-    notes = _notes(states, others, sigma_sys, n_images)
-    p_value = float(stats.chi2.sf(chi2, dof)) if dof > 0 else float("nan")
-    # as fusion.fuse: inflate only when the scatter is improbable under the stated sigmas
-    inflated = bool(options.birge_inflation and np.isfinite(p_value) and birge > 1.0
-                    and p_value < options.fusion.birge_p_value)
-    if inflated:
-        q, sigma_eff = float(stats.t.ppf(1.0 - alpha / 2, dof)), sigma_rand * birge
-        notes.append(f"scatter beyond the stated sigmas (Birge ratio {birge:.2f}, dof {dof}, "
-                     f"p = {p_value:.2g}): random sigma inflated")
-    half = float(np.hypot(q * sigma_eff, z * sigma_sys))
+    iv = interval(sigma_rand, sigma_sys, chi2, dof, options.fusion, options.birge_inflation)
+    notes = [*_notes(states, others, sigma_sys, n_images), *iv.notes]
     rejected = [(im.image, f.pair, im.reason or "rejected")
                 for f in [st.fit for st in states] for im in f.images if im.rejected]
     used = tuple(dict.fromkeys(im for st in states for im in st.inputs))
-    return FusedScale(value, float(np.hypot(sigma_eff, sigma_sys)), (value - half, value + half),
+    half = iv.half_width
+    return FusedScale(value, iv.std, (value - half, value + half),
                       1.0 / value, METHOD, sum(len(st.inputs) for st in states), len(rejected),
-                      _per_image(states), rejected, notes, sigma_eff, sigma_sys, birge,
-                      p_value, inflated, used)
+                      _per_image(states), rejected, notes, iv.sigma_random, sigma_sys,
+                      iv.birge_ratio, iv.p_value, iv.inflated, used)
 
 
 def _fallback(observations: Sequence[ImageObservation], rig: Rig, fits: Sequence[PairJointFit],

@@ -88,7 +88,6 @@ from sfm_laserscale.model import Camera, Pose, Spot
 from sfm_laserscale.raycast import (
     MeshRaycaster,
     SpotCastOptions,
-    SpotHit,
     cast_spots,
     pixel_rays,
 )
@@ -719,12 +718,9 @@ def _fused_tuple(f: FusedScale) -> tuple[float, float, float, float, float]:
     return (float(f.value), float(f.std), float(f.ci95[0]), float(f.ci95[1]), gls)
 
 
-def _unchecked(ctx: TrialContext, setting: LaserSetting, obs: ImageObservation,
-               edge_hits: Sequence[SpotHit]) -> dict[str, tuple[float, float, float, float, float]]:
-    """Per-view fusions with the depth-edge spots put back (what ``scale`` would do without
-    its check)."""
-    est = estimate_image(replace(obs, hits=(*obs.hits, *edge_hits)), setting.rig,
-                         ctx.options.estimation)
+def _fused_per_view(ctx: TrialContext, est: ImageEstimates
+                    ) -> dict[str, tuple[float, float, float, float, float]]:
+    """``fusion.fuse`` of one view's estimates, per method (as ``_fused_tuple``)."""
     return {m: _fused_tuple(fuse([est], m, ctx.options.fusion)) for m in METHODS if est.of(m)}
 
 
@@ -755,13 +751,10 @@ def evaluate_setting(ctx: TrialContext, index: int, truth: Sequence[TrueSpot], j
     name = f"v{job.index}" + ("m" if job.sign < 0 else "")
     obs = ImageObservation(name, ctx.camera, pose, covariance, cast.hits)
     est = estimate_image(replace(obs, hits=every), setting.rig, ctx.options.estimation)
-    fused = {}
-    if cast.hits:
-        kept = estimate_image(obs, setting.rig, ctx.options.estimation) if edges else est
-        fused = {m: _fused_tuple(fuse([kept], m, ctx.options.fusion))
-                 for m in METHODS if kept.of(m)}
+    kept = estimate_image(obs, setting.rig, ctx.options.estimation) if edges and cast.hits else est
+    fused = _fused_per_view(ctx, kept) if cast.hits else {}
     dt = _davis_tusting(ctx, setting.rig, spots, pose)
-    unchecked = _unchecked(ctx, setting, obs, cast.edge_hits) if edges else {}
+    unchecked = _fused_per_view(ctx, est) if edges else {}  # the edge spots put back
     return LaserOutcome(index, reasons, est, fused, dt, depth, obs if cast.hits else None, edges,
                         unchecked)
 
