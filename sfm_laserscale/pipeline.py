@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -22,6 +22,7 @@ from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
 from sfm_laserscale.io.meshes import TriangleMesh, load_mesh
 from sfm_laserscale.io.models import load_model, load_model_features
 from sfm_laserscale.io.spots_csv import read_spots_csv
+from sfm_laserscale.memory import trim_heap
 from sfm_laserscale.methods.pcm_joint import (
     PcmJointOptions,
     PcmJointResult,
@@ -35,7 +36,17 @@ from sfm_laserscale.provenance import (
     provenance,
     run_log_text,
 )
-from sfm_laserscale.raycast import MeshRaycaster, SpotCastOptions, SpotHit, cast_spots
+from sfm_laserscale.raycast import (
+    CropOptions,
+    MeshCrop,
+    MeshRaycaster,
+    SpotCastOptions,
+    SpotHit,
+    cast_spots,
+    crop_for_rays,
+    pixel_rays,
+    spot_cast_rays,
+)
 from sfm_laserscale.registration import (
     DescriptorIndex,
     IndexOptions,
@@ -87,6 +98,14 @@ class ScaleOptions:
     index: IndexOptions = field(default_factory=IndexOptions)
     registration: RegistrationOptions = field(default_factory=RegistrationOptions)
     spot_cast: SpotCastOptions = field(default_factory=SpotCastOptions)
+    crop: CropOptions = field(default_factory=CropOptions)
+    # the mesh–model check: inlier points within mesh_check_near (share of the model's extent)
+    # of a spot's ray, at least mesh_check_min_points of them (the nearest), at most
+    # mesh_check_points (a seeded subset); exact up to mesh_check_radius (2× its limit)
+    mesh_check_near: float = 0.02
+    mesh_check_min_points: int = 50
+    mesh_check_points: int = 20000
+    mesh_check_radius: float = 0.01
     estimation: EstimationOptions = field(default_factory=EstimationOptions)
     fusion: FusionOptions = field(default_factory=FusionOptions)
 
@@ -96,7 +115,7 @@ class LoadedInputs:
     """Everything read from disk before the per-image work."""
 
     model: SparseModel
-    mesh: TriangleMesh
+    mesh: TriangleMesh | None  # None once cropped (run_scale releases it: peak memory)
     rig: Rig
     laser_images: tuple[LaserImage, ...]
     manual_spots: dict[str, list[Spot]]
@@ -160,7 +179,6 @@ def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
     """Read and validate every input; raises InputError on bad input (exit 2)."""
     rig = load_rig(inputs.rig)
     model = load_model(inputs.model)
-    mesh = load_mesh(inputs.mesh)
     laser_images = find_laser_images(inputs.laser_images, model)
     manual: dict[str, list[Spot]] = {}
     if inputs.spots is not None:
@@ -176,6 +194,9 @@ def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
         if source is None or exc.path is None:
             raise
         raise InputError(f"image {exc.path}: {exc.problem}", source) from exc
+    del features  # the index holds what it needs; the mesh is read after (peak memory)
+    trim_heap()
+    mesh = load_mesh(inputs.mesh)
     return LoadedInputs(model, mesh, rig, laser_images, manual, index)
 
 
@@ -191,7 +212,7 @@ def _spots_for(
     return det.spots, det, dict(det.missing)
 
 
-def _failed(image: LaserImage, reason: str, **kw: Any) -> ImageRun:
+def _failed(image: LaserImage, reason: str | None, **kw: Any) -> ImageRun:
     base: dict[str, Any] = dict(name=image.name, path=image.path, camera=image.camera,
                                 registration=None, detection=None, spots=(), hits=(),
                                 spot_reasons={}, estimates=None, reason=reason)
@@ -199,9 +220,10 @@ def _failed(image: LaserImage, reason: str, **kw: Any) -> ImageRun:
     return ImageRun(**base)
 
 
-def process_image(image: LaserImage, loaded: LoadedInputs, caster: MeshRaycaster,
-                  options: ScaleOptions, timer: Timer) -> ImageRun:
-    """Detect, register, cast and estimate for one laser image; failures become reasons."""
+def detect_and_register(image: LaserImage, loaded: LoadedInputs, options: ScaleOptions,
+                        timer: Timer) -> ImageRun:
+    """Detect the spots of one laser image and register it; failures become reasons. A
+    registered image comes back with ``reason`` None and no hits yet (see cast_and_estimate)."""
     camera = image.camera
     if camera is None:
         return _failed(image, "not a readable image")
@@ -214,27 +236,106 @@ def process_image(image: LaserImage, loaded: LoadedInputs, caster: MeshRaycaster
     with timer("register"):
         reg = register_image(extract_sift(rgb, options.sift), camera, loaded.index,
                              options.registration)
-    pose = reg.cam_from_world
     done = dict(registration=reg, detection=det, spots=spots, spot_reasons=spot_reasons)
-    if not reg.success or pose is None:
+    if not reg.success or reg.cam_from_world is None:
         return _failed(image, reg.reason or "registration failed", **done)
+    return _failed(image, None, **done)  # registered: hits and estimates to come
+
+
+def _registered(runs: Sequence[ImageRun]) -> list[ImageRun]:
+    return [r for r in runs if r.reason is None and r.registration is not None
+            and r.registration.cam_from_world is not None and r.camera is not None]
+
+
+def crop_mesh(runs: Sequence[ImageRun], loaded: LoadedInputs,
+              options: ScaleOptions) -> MeshCrop:
+    """The mesh cropped to every ray the registered images' spots will cast and to the
+    mesh-check points (exact: raycast.crop_for_rays)."""
+    rays = [spot_cast_rays(r.spots, r.camera, r.registration.cam_from_world,  # type: ignore
+                           options.spot_cast) for r in _registered(runs)]
+    origins = np.concatenate([o for o, _ in rays]) if rays else np.zeros((0, 3))
+    dirs = np.concatenate([d for _, d in rays]) if rays else np.zeros((0, 3))
+    if loaded.mesh is None:
+        raise ValueError("crop_mesh needs the loaded mesh (it was released)")
+    radius = options.mesh_check_radius * loaded.model.extent
+    return crop_for_rays(loaded.mesh.vertices, loaded.mesh.triangles, origins, dirs,
+                         mesh_check_points(runs, options, loaded.model.extent),
+                         replace(options.crop, point_radius=radius))
+
+
+def mesh_check_points(runs: Sequence[ImageRun], options: ScaleOptions,
+                      extent: float) -> np.ndarray:
+    """(N, 3) the registered laser images' inlier model points near their spots' rays: where
+    the scale is read off the mesh, so where mesh and model must agree (DESIGN §6 checks)."""
+    pts, dist = [], []
+    for r in _registered(runs):
+        reg = r.registration
+        if not r.spots or reg is None or reg.cam_from_world is None or r.camera is None:
+            continue
+        xy = np.array([[s.x, s.y] for s in r.spots], dtype=np.float64)
+        origins, dirs = pixel_rays(r.camera, reg.cam_from_world.inverse(), xy)
+        rel = reg.inlier_xyz[:, None, :] - origins[None]  # (K, S, 3)
+        along = np.maximum(np.einsum("ksj,sj->ks", rel, dirs), 0.0)
+        off = np.linalg.norm(rel - along[..., None] * dirs[None], axis=2).min(axis=1)
+        pts.append(reg.inlier_xyz)
+        dist.append(off)
+    if not pts:
+        return np.zeros((0, 3))
+    xyz, inverse = np.unique(np.concatenate(pts), axis=0, return_inverse=True)
+    off = np.full(len(xyz), np.inf)
+    np.minimum.at(off, inverse.reshape(-1), np.concatenate(dist))  # a point seen in 2 images
+    near = off <= options.mesh_check_near * extent
+    if near.sum() < options.mesh_check_min_points:  # sparse models: the nearest ones
+        near = np.zeros(len(off), dtype=bool)
+        near[np.argsort(off, kind="stable")[:options.mesh_check_min_points]] = True
+    sel = xyz[near]
+    if len(sel) > options.mesh_check_points:
+        rng = np.random.default_rng(options.seed)
+        sel = sel[np.sort(rng.choice(len(sel), options.mesh_check_points, replace=False))]
+    return sel
+
+
+def mesh_model_agreement(points: np.ndarray, caster: MeshRaycaster, extent: float,
+                         whole_mesh: Callable[[], TriangleMesh]) -> float:
+    """Median distance of the check points to the mesh / model extent (NaN without points).
+
+    On a cropped caster distances up to its point radius are exact; a median beyond it (a mesh
+    that does not belong to the model) is computed on ``whole_mesh()``, at the whole mesh's cost.
+    """
+    if len(points) == 0:
+        return float("nan")
+    median = float(np.median(caster.distances(points)))
+    limit = np.inf if caster.coverage is None else caster.coverage.point_radius
+    if median > limit:
+        logger.warning("mesh–model check: median distance beyond %.3g model units; computing it "
+                       "on the whole mesh", limit)
+        mesh = whole_mesh()
+        median = float(np.median(MeshRaycaster(mesh.vertices, mesh.triangles).distances(points)))
+    return median / max(extent, 1e-12)
+
+
+def cast_and_estimate(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster,
+                      options: ScaleOptions, timer: Timer) -> ImageRun:
+    """Cast the spots of a registered image into the mesh and estimate the scale."""
+    if run.reason is not None or run.camera is None or run.registration is None:
+        return run
+    pose = run.registration.cam_from_world
+    if pose is None:
+        return run
     with timer("raycast"):
-        cast = cast_spots(spots, camera, pose, caster, options.spot_cast)
-    hits = cast.hits
-    spot_reasons.update(cast.reasons)
-    if not hits:
-        why = ("no laser spot found" if not spots else
+        cast = cast_spots(run.spots, run.camera, pose, caster, options.spot_cast)
+    spot_reasons = {**run.spot_reasons, **cast.reasons}
+    if not cast.hits:
+        why = ("no laser spot found" if not run.spots else
                "no usable spot hit on the mesh: " + "; ".join(sorted(set(cast.reasons.values()))))
-        return _failed(image, why, **done)
-    obs = ImageObservation(image=image.name, camera=camera, cam_from_world=pose,
-                           pose_covariance=reg.covariance, hits=hits)
+        return replace(run, spot_reasons=spot_reasons, reason=why)
+    obs = ImageObservation(image=run.name, camera=run.camera, cam_from_world=pose,
+                           pose_covariance=run.registration.covariance, hits=cast.hits)
     with timer("estimate"):
         est = estimate_image(obs, loaded.rig, options.estimation)
     usable = [e for e in est.estimates if not e.rejected]
     reason = None if usable else "every estimate of this image was rejected"
-    return ImageRun(name=image.name, path=image.path, camera=camera, registration=reg,
-                    detection=det, spots=spots, hits=hits, spot_reasons=spot_reasons,
-                    estimates=est, reason=reason)
+    return replace(run, hits=cast.hits, spot_reasons=spot_reasons, estimates=est, reason=reason)
 
 
 def _observations(runs: Sequence[ImageRun]) -> list[ImageObservation]:
@@ -291,19 +392,31 @@ def run_scale(
         logger.info("sfm-laserscale %s: scale %s", __version__, inputs)
         with timer("load"):
             loaded = load_inputs(inputs, options)
-            caster = MeshRaycaster(loaded.mesh.vertices, loaded.mesh.triangles)
         runs = []
         for li in progress_bar(options.progress, "laser images", iterable=loaded.laser_images,
                                unit="img"):
             t0 = time.perf_counter()
-            runs.append(process_image(li, loaded, caster, options, timer))
-            what = runs[-1].reason and f"no estimate ({runs[-1].reason})"
+            runs.append(detect_and_register(li, loaded, options, timer))
+            what = runs[-1].reason and f"not registered ({runs[-1].reason})"
             logger.info("laser image %s (%s): %s in %.2f s", li.name, li.path,
-                        what or "estimated", time.perf_counter() - t0)
+                        what or "registered", time.perf_counter() - t0)
+        with timer("raycast"):
+            crop = crop_mesh(runs, loaded, options)
+            loaded = replace(loaded, mesh=None)  # the crop is all the rest needs
+            trim_heap()
+            caster = crop.raycaster()
+        logger.info("mesh cropped to the spots' rays and the check points: %d of %d triangles "
+                    "(%.2f %%)", len(crop.triangles), crop.source_triangles,
+                    100 * crop.kept_fraction)
+        runs = [cast_and_estimate(r, loaded, caster, options, timer) for r in runs]
+        for r in runs:
+            logger.info("laser image %s: %s", r.name,
+                        "estimated" if r.reason is None else f"no estimate ({r.reason})")
         fusion = fuse_all(runs, loaded.rig, options)
         headline, fused, joint = fusion.headline, fusion.methods, fusion.pcm_joint
-        checks = {"mesh_model_agreement": caster.median_distance(loaded.model.points_xyz)
-                  / max(loaded.model.extent, 1e-12)}
+        checks = {"mesh_model_agreement": mesh_model_agreement(
+            mesh_check_points(runs, options, loaded.model.extent), caster, loaded.model.extent,
+            lambda: load_mesh(inputs.mesh))}
         logger.info("timings so far: %s", timer.as_dict())
         with staged_output_dir(out_dir, overwrite) as tmp, timer("write"):
             report = build_report(inputs, options, loaded, runs, headline, fused, checks, timer,

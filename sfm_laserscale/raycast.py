@@ -12,17 +12,26 @@ spot is not a plane (a crest seen edge-on, a depth edge, an occlusion boundary),
 σ can be 100× too small and its scale biased by percents. :func:`on_depth_edge` casts a ring of
 rays around the spot and rejects such spots with a reason, so every estimate that reaches the
 fusion has a σ that holds.
+
+Large meshes (:func:`crop_for_rays`): the scale job casts a few dozen rays per image, so it does
+not build Open3D's BVH over the whole mesh (~80 bytes per triangle, 15 s at 20M triangles).
+The rays (spot rays and their edge-check rings) are known once the images are registered; the
+mesh is cropped to the triangles that can lie within reach of them (exactly: every triangle
+a ray can meet is kept, see :func:`crop_for_rays`), and the caster is built on that crop. A
+cropped caster refuses rays it was not built for (``CropCoverage``), so a crop can never give a
+wrong first hit silently.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
+from scipy import ndimage
 
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.model import Camera, Pose, Spot
@@ -42,21 +51,25 @@ class RaycastResult:
 
 
 class MeshRaycaster:
-    """A mesh prepared once for many ray casts."""
+    """A mesh prepared once for many ray casts (optionally a crop that covers given rays)."""
 
-    def __init__(self, vertices: NDArray[np.float64], triangles: NDArray[np.integer]) -> None:
+    def __init__(self, vertices: NDArray[np.floating], triangles: NDArray[np.integer],
+                 coverage: CropCoverage | None = None) -> None:
         verts = np.asarray(vertices, dtype=np.float64)
         # faces stay in their own integer type (a 20M-triangle mesh is 240 MB as int32, 480 MB
         # as int64); normals are computed in cast() for the triangles that are hit only
         tris = np.asarray(triangles)
         if tris.dtype.kind not in "iu":
             raise InputError("mesh triangle indices must be integers")
-        if len(tris) == 0:
+        if len(tris) == 0 and coverage is None:  # an empty crop is fine: its rays miss
             raise InputError("mesh has no triangles")
         self.vertices = verts
         self.triangles = tris
-        self.offset = verts.mean(axis=0)
+        self.coverage = coverage
+        self.offset = verts.mean(axis=0) if len(verts) else np.zeros(3)
         self._scene = o3d.t.geometry.RaycastingScene()
+        if len(tris) == 0:
+            return
         self._scene.add_triangles(
             o3d.core.Tensor.from_numpy((verts - self.offset).astype(np.float32)),
             o3d.core.Tensor.from_numpy(np.ascontiguousarray(tris, dtype=np.uint32)),
@@ -74,6 +87,8 @@ class MeshRaycaster:
         o = np.atleast_2d(np.asarray(origins, dtype=np.float64))
         d = np.atleast_2d(np.asarray(directions, dtype=np.float64))
         d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        if self.coverage is not None and not self.coverage.covers_rays(o, d).all():
+            raise RuntimeError("ray outside the cropped mesh's coverage: crop for these rays")
         rays = np.hstack([o - self.offset, d]).astype(np.float32)
         ans = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
         prim = ans["primitive_ids"].numpy().astype(np.int64)
@@ -97,7 +112,10 @@ class MeshRaycaster:
 
     def distances(self, xyz: NDArray[np.float64]) -> NDArray[np.float64]:
         """Unsigned distance of (N, 3) points to the mesh surface (model units)."""
-        pts = np.atleast_2d(np.asarray(xyz, dtype=np.float64)) - self.offset
+        pts = np.atleast_2d(np.asarray(xyz, dtype=np.float64))
+        if self.coverage is not None and not self.coverage.covers_points(pts).all():
+            raise RuntimeError("point outside the cropped mesh's coverage: crop for it")
+        pts = pts - self.offset
         out = self._scene.compute_distance(o3d.core.Tensor.from_numpy(pts.astype(np.float32)))
         return np.asarray(out.numpy(), dtype=np.float64)
 
@@ -186,6 +204,25 @@ def cast_spots(spots: Sequence[Spot], camera: Camera, cam_from_world: Pose,
     return SpotCastResult(tuple(hits), tuple(edges), reasons)
 
 
+def ring_pixels(xy_px: NDArray[np.float64], sigma_px: float,
+                options: SpotCastOptions) -> NDArray[np.float64]:
+    """(ring_rays, 2) pixels on the edge check's ring around a spot."""
+    theta = np.linspace(0.0, 2 * np.pi, options.ring_rays, endpoint=False)
+    radius_px = options.ring_sigma * sigma_px
+    return np.asarray(xy_px)[None] + radius_px * np.column_stack([np.cos(theta), np.sin(theta)])
+
+
+def spot_cast_rays(spots: Sequence[Spot], camera: Camera, cam_from_world: Pose,
+                   options: SpotCastOptions) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Every ray :func:`cast_spots` may cast for these spots (spot rays and edge-check rings):
+    origins (N, 3) and unit directions (N, 3), world frame; what a crop must cover."""
+    xy = [np.array([[s.x, s.y] for s in spots], dtype=np.float64).reshape(-1, 2)]
+    if options.edge_check and options.ring_rays >= 3:
+        xy += [ring_pixels(xy[0][i], s.sigma_px, options) for i, s in enumerate(spots)
+               if s.sigma_px > 0]
+    return pixel_rays(camera, cam_from_world.inverse(), np.concatenate(xy))
+
+
 def on_depth_edge(caster: MeshRaycaster, camera: Camera, cam_from_world: Pose, hit: SpotHit,
                   options: SpotCastOptions) -> bool:
     """True when the spot's tangent-plane σ cannot hold.
@@ -196,9 +233,8 @@ def on_depth_edge(caster: MeshRaycaster, camera: Camera, cam_from_world: Pose, h
     """
     if not hit.sigma_px > 0 or options.ring_rays < 3:
         return False
-    theta = np.linspace(0.0, 2 * np.pi, options.ring_rays, endpoint=False)
     radius_px = options.ring_sigma * hit.sigma_px
-    ring = hit.xy_px[None] + radius_px * np.column_stack([np.cos(theta), np.sin(theta)])
+    ring = ring_pixels(hit.xy_px, hit.sigma_px, options)
     origins, dirs = pixel_rays(camera, cam_from_world.inverse(), ring)
     res = caster.cast(origins, dirs)
     centre = cam_from_world.center
@@ -210,3 +246,212 @@ def on_depth_edge(caster: MeshRaycaster, camera: Camera, cam_from_world: Pose, h
     linear = float(np.max(np.abs(t_plane - t0)))
     radius = radius_px * t0 / camera.focal_px  # the ring's radius on a facing plane
     return not nonlinear <= max(options.tolerance * linear, radius)
+
+
+# --------------------------------------------------------------------------- mesh crop
+
+
+@dataclass(frozen=True)
+class CropOptions:
+    """Options of :func:`crop_for_rays`."""
+
+    grid_cells: int = 256  # at most this many cells along the mesh box's longest side
+    # cells are at least this quantile of the triangles' sizes (ρ, estimated on a seeded
+    # sample): larger triangles are kept whatever the rays, so they must be few
+    size_quantile: float = 0.999
+    size_sample: int = 100_000
+    chunk_triangles: int = 1 << 18  # triangles tested at a time (memory: ~25 MB of float64)
+    point_radius: float = 0.0  # distances up to this (model units) are exact for given points
+
+    def __post_init__(self) -> None:
+        if self.grid_cells < 1 or self.chunk_triangles < 1 or self.size_sample < 1:
+            raise InputError("grid_cells, chunk_triangles and size_sample must be >= 1")
+        if not 0 < self.size_quantile <= 1:
+            raise InputError(f"size_quantile must be in (0, 1], got {self.size_quantile}")
+        if not self.point_radius >= 0:
+            raise InputError(f"point_radius must be >= 0, got {self.point_radius}")
+
+
+RAY_DILATION = 2  # cells: see crop_for_rays
+RAY_SLACK = 1  # cells: a ray is covered when its samples lie within this of the crop's rays
+
+
+@dataclass(frozen=True)
+class CropCoverage:
+    """The voxel grid a crop was made for: cells within ``RAY_SLACK`` of the cells the rays pass
+    (``ray_cells``; the slack absorbs rounding in rays recomputed in another batch) and the
+    cells of the given points (``point_cells``), whose distances are exact up to
+    ``point_radius``."""
+
+    lo: NDArray[np.float64]  # (3,) grid origin, model units
+    cell: float  # cell size, model units
+    ray_cells: NDArray[np.bool_] = field(repr=False)  # (X, Y, Z)
+    point_cells: NDArray[np.bool_] = field(repr=False)  # (X, Y, Z)
+    point_radius: float = 0.0
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Grid cells per axis."""
+        return tuple(int(v) for v in self.ray_cells.shape)  # type: ignore[return-value]
+
+    def cells_of(self, xyz: NDArray[np.floating]) -> NDArray[np.int64]:
+        """(N, 3) cell indices of (N, 3) points, clamped to the grid (float32 points are
+        binned in float32: an error ~1e-7 of the coordinates, far inside the dilation's
+        0.75-cell margin)."""
+        ftype = np.dtype(np.float32 if xyz.dtype == np.float32 else np.float64)
+        rel = (xyz - self.lo.astype(ftype)) * ftype.type(1.0 / self.cell)
+        return np.clip(np.floor(rel).astype(np.int64), 0, np.array(self.shape) - 1)
+
+    def covers_rays(self, origins: NDArray[np.float64],
+                    unit_dirs: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """(N,) True where every sample of the ray falls in a cell the crop was made for."""
+        samples, ray = ray_samples(self.lo, self.cell, self.shape, origins, unit_dirs)
+        c = self.cells_of(samples)
+        inside = self.ray_cells[c[:, 0], c[:, 1], c[:, 2]]
+        return np.bincount(ray[~inside], minlength=len(origins)) == 0
+
+    def covers_points(self, xyz: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """(N,) True for points the crop was made for (distance exact up to point_radius)."""
+        c = self.cells_of(np.atleast_2d(xyz))
+        return self.point_cells[c[:, 0], c[:, 1], c[:, 2]]
+
+
+@dataclass(frozen=True)
+class MeshCrop:
+    """The triangles within reach of some rays (and points), as their own small mesh."""
+
+    vertices: NDArray[np.float64]  # (V', 3) model units
+    triangles: NDArray[np.int32]  # (F', 3) indices into ``vertices``
+    coverage: CropCoverage
+    source_triangles: int  # F of the whole mesh
+
+    @property
+    def kept_fraction(self) -> float:
+        """Share of the mesh's triangles kept."""
+        return len(self.triangles) / max(self.source_triangles, 1)
+
+    def raycaster(self) -> MeshRaycaster:
+        """A caster over the crop that refuses rays and points it was not made for."""
+        return MeshRaycaster(self.vertices, self.triangles, coverage=self.coverage)
+
+
+def ray_samples(lo: NDArray[np.float64], cell: float, shape: tuple[int, int, int],
+                origins: NDArray[np.float64], unit_dirs: NDArray[np.float64]
+                ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Points every ``cell / 2`` along each ray inside the grid box grown by one cell, and the
+    ray each belongs to: (K, 3) model units, (K,). A ray missing the box has none."""
+    box_lo = lo - cell
+    box_hi = lo + (np.array(shape) + 1) * cell
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_a = (box_lo - origins) / unit_dirs
+        t_b = (box_hi - origins) / unit_dirs
+    t_lo = np.where(unit_dirs == 0, np.where((origins >= box_lo) & (origins <= box_hi),
+                                             -np.inf, np.inf), np.minimum(t_a, t_b))
+    t_hi = np.where(unit_dirs == 0, np.where((origins >= box_lo) & (origins <= box_hi),
+                                             np.inf, -np.inf), np.maximum(t_a, t_b))
+    t0 = np.maximum(t_lo.max(axis=1), 0.0)
+    t1 = t_hi.min(axis=1)
+    step = cell / 2
+    span = np.where(t1 >= t0, t1 - t0, -1.0)  # -1: the ray misses the box
+    n = np.where(span >= 0, np.floor(np.maximum(span, 0) / step).astype(np.int64) + 2, 0)
+    ray = np.repeat(np.arange(len(origins)), n)
+    k = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+    t = np.minimum(t0[ray] + k * step, t1[ray])
+    return origins[ray] + t[:, None] * unit_dirs[ray], ray
+
+
+def _mark(shape: tuple[int, int, int], cells: NDArray[np.int64]) -> NDArray[np.bool_]:
+    grid = np.zeros(shape, dtype=bool)
+    grid[cells[:, 0], cells[:, 1], cells[:, 2]] = True
+    return grid
+
+
+def _dilate(grid: NDArray[np.bool_], cells: int) -> NDArray[np.bool_]:
+    """Cells within ``cells`` (Chebyshev) of a marked cell (separable maximum filter)."""
+    if cells <= 0 or not grid.any():
+        return grid
+    return np.asarray(ndimage.maximum_filter(grid, size=2 * cells + 1, mode="constant"),
+                      dtype=bool)
+
+
+def _centroid_radius2(vertices: NDArray[np.floating], tris: NDArray[np.integer]
+                      ) -> tuple[NDArray[np.floating], NDArray[np.floating]]:
+    """(F, 3) centroids and (F,) squared largest centroid–corner distances (ρ²), in the
+    vertices' own float type (float32 halves the memory traffic; see ``cells_of``)."""
+    a, b, c = (vertices[tris[:, k]] for k in range(3))
+    centroid = (a + b + c) / a.dtype.type(3.0)
+    rho2 = np.maximum.reduce([np.einsum("ij,ij->i", v - centroid, v - centroid)
+                              for v in (a, b, c)])
+    return centroid, rho2
+
+
+def _triangle_size(vertices: NDArray[np.floating], tris: NDArray[np.integer],
+                   options: CropOptions) -> float:
+    """The ``size_quantile`` of ρ over a seeded sample of the triangles (0 for no triangles)."""
+    if len(tris) == 0:
+        return 0.0
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(tris), size=min(len(tris), options.size_sample), replace=False)
+    _, rho2 = _centroid_radius2(vertices, tris[np.sort(pick)])
+    return float(np.sqrt(np.quantile(rho2, options.size_quantile)))
+
+
+def _kept_triangles(vertices: NDArray[np.floating], tris: NDArray[np.integer],
+                    coverage: CropCoverage, hot: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """(F,) True for triangles larger than a cell or whose centroid's cell is hot."""
+    centroid, rho2 = _centroid_radius2(vertices, tris)
+    cells = coverage.cells_of(centroid)
+    return (rho2 > coverage.cell ** 2) | hot[cells[:, 0], cells[:, 1], cells[:, 2]]
+
+
+def crop_for_rays(vertices: NDArray[np.floating], triangles: NDArray[np.integer],
+                  origins: NDArray[np.float64], directions: NDArray[np.float64],
+                  points: NDArray[np.float64] | None = None,
+                  options: CropOptions = CropOptions()) -> MeshCrop:  # noqa: B008
+    """The mesh's triangles that any of the (N, 3) rays can meet, and those within
+    ``options.point_radius`` of the (M, 3) points: first hits and distances up to that radius
+    are the whole mesh's.
+
+    Why it is exact: a voxel grid of cell h covers the mesh's box. A triangle lies within
+    ρ (its largest centroid–corner distance) of its centroid. Triangles with ρ > h are always
+    kept. Any other triangle a ray meets has its centroid within h of a ray point, and that
+    point within h/4 of a ray sample (samples every h/2): within 1.25 h per axis, i.e. at most
+    2 cells from a sampled cell, which is why ray cells are dilated by 2 (after the slack of
+    ``RAY_SLACK`` cells that covered rays may take). Likewise a triangle within r of a point has
+    its centroid at most ⌈r/h⌉ + 2 cells from the point's cell.
+    """
+    verts = np.asarray(vertices)  # float32 or float64 as read: converted chunk by chunk
+    if verts.dtype.kind != "f":
+        verts = verts.astype(np.float64)
+    tris = np.asarray(triangles)
+    lo, hi = verts.min(axis=0).astype(np.float64), verts.max(axis=0).astype(np.float64)
+    cell = max(float(np.max(hi - lo)) / options.grid_cells, _triangle_size(verts, tris, options),
+               1e-12)
+    shape = tuple(int(v) for v in np.floor((hi - lo) / cell).astype(np.int64) + 1)
+    o = np.atleast_2d(np.asarray(origins, dtype=np.float64)).reshape(-1, 3)
+    d = np.atleast_2d(np.asarray(directions, dtype=np.float64)).reshape(-1, 3)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    empty = np.zeros(shape, dtype=bool)
+    cov = CropCoverage(lo, cell, empty, empty, options.point_radius)
+    samples, _ = ray_samples(lo, cell, shape, o, d)  # type: ignore[arg-type]
+    ray_cells = _dilate(_mark(shape, cov.cells_of(samples)), RAY_SLACK)  # type: ignore[arg-type]
+    pts = np.zeros((0, 3)) if points is None else np.atleast_2d(np.asarray(points, np.float64))
+    pt_cells = _mark(shape, cov.cells_of(pts))  # type: ignore[arg-type]
+    cov = CropCoverage(lo, cell, ray_cells, pt_cells, options.point_radius)
+    hot = _dilate(ray_cells, RAY_DILATION) | _dilate(
+        pt_cells, int(np.ceil(options.point_radius / cell)) + RAY_DILATION)
+    keep = np.concatenate([
+        _kept_triangles(verts, tris[s:s + options.chunk_triangles], cov, hot)
+        for s in range(0, len(tris), options.chunk_triangles)])
+    return _submesh(verts, tris[keep], cov, len(tris))
+
+
+def _submesh(verts: NDArray[np.floating], kept: NDArray[np.integer], coverage: CropCoverage,
+             source_triangles: int) -> MeshCrop:
+    """The kept triangles with their own compact vertex array."""
+    used = np.zeros(len(verts), dtype=bool)  # a mask, not np.unique: O(V) instead of a sort
+    used[kept.reshape(-1)] = True
+    new_index = np.cumsum(used, dtype=np.int64) - 1
+    return MeshCrop(vertices=verts[used].astype(np.float64),
+                    triangles=new_index[kept].astype(np.int32),
+                    coverage=coverage, source_triangles=source_triangles)

@@ -30,25 +30,29 @@ Refinement loss: Cauchy with scale ``PoseOptions.loss_scale_px`` = 4 px (COLMAP 
 by ~15 % with a 1 px scale, ~4 % with 2 px and ~1 % with 4 px (Monte Carlo, 200
 trials), while residuals near the 12 px RANSAC threshold are still down-weighted 10×.
 
-Determinism: SIFT is deterministic. Exact descriptor search is; FLANN's randomised
-KD-trees are made so by seeding OpenCV's RNG (``IndexOptions.seed``) right before
-building (same OpenCV build). LO-RANSAC takes ``PoseOptions.seed`` as pycolmap's
-``ransac.random_seed`` with one thread, and Ceres' refinement is single-threaded:
-same input and seeds give bit-identical poses (tested). ``seed=None`` leaves RANSAC
-random.
+Descriptor index: exact search up to 10k descriptors, above that a FAISS inverted file
+(IVF: k-means cells, ``IndexOptions.ivf_probe`` nearest cells searched per query) whose lists
+hold the SIFT descriptors as their own uint8 values (``QT_8bit_direct``: 128 bytes each, exact
+L2 distances within the searched cells). It replaced OpenCV's FLANN KD-trees, which needed a
+float32 copy of the pool plus trees (~1.45 kB per descriptor, 2.9 GB at 2M descriptors) against
+~136 bytes here, and built 2× slower (docs/BENCHMARKS.md).
+
+Determinism: SIFT is deterministic. Exact descriptor search is; the IVF's k-means is seeded
+(``IndexOptions.seed``) and its search has no randomness. LO-RANSAC takes
+``PoseOptions.seed`` as pycolmap's ``ransac.random_seed`` with one thread, and Ceres'
+refinement is single-threaded: same input and seeds give bit-identical poses (tested).
+``seed=None`` leaves RANSAC random.
 """
 
 from __future__ import annotations
 
 import logging
-import os
 import time
 from collections.abc import Mapping
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-import cv2
+import faiss
 import numpy as np
 import pycolmap
 from numpy.typing import NDArray
@@ -115,11 +119,23 @@ class IndexOptions:
     """Descriptor index of the model's 3D points."""
 
     max_descriptors_per_point: int = 8  # the ones closest to the point's mean descriptor
-    exact: bool | None = None  # None: exact brute force up to exact_max_pool, else FLANN
+    exact: bool | None = None  # None: exact brute force up to exact_max_pool, else IVF
     exact_max_pool: int = 10000
-    flann_trees: int = 4
-    flann_checks: int = 128
-    seed: int = 0  # seeds OpenCV's RNG before the randomised KD-trees are built
+    ivf_lists: int | None = None  # k-means cells; None: √(pool size), within 16..4096
+    ivf_probe: int = 8  # cells searched per query (recall of the exact first neighbour ~98 %)
+    train_per_list: int = 40  # k-means training sample: this many descriptors per cell
+    # cells are assigned in a PCA projection of this many dimensions (0: all 128): at 2M
+    # descriptors 1.7 s instead of 9.5 s to fill the lists, same recall (docs/BENCHMARKS.md)
+    coarse_dims: int = 16
+    seed: int = 0  # k-means seed
+
+    def __post_init__(self) -> None:
+        if self.ivf_lists is not None and self.ivf_lists < 1:
+            raise InputError(f"ivf_lists must be >= 1, got {self.ivf_lists}")
+        if self.ivf_probe < 1 or self.train_per_list < 1:
+            raise InputError("ivf_probe and train_per_list must be >= 1")
+        if not 0 <= self.coarse_dims <= DESCRIPTOR_DIM:
+            raise InputError(f"coarse_dims must be in 0..128, got {self.coarse_dims}")
 
 
 @dataclass(frozen=True)
@@ -196,12 +212,13 @@ class ObservationFeatures:
 class DescriptorIndex:
     """Descriptors of the model's 3D points, searchable by nearest neighbour."""
 
-    descriptors: NDArray[np.float32]  # (P, 128)
+    descriptors: NDArray[np.uint8]  # (P, 128) for exact search; (0, 128) when the IVF holds them
     point_rows: NDArray[np.int64]  # (P,) row of each descriptor's point in points_xyz
     points_xyz: F64  # (M, 3) the model's points, model units
     point3D_ids: NDArray[np.uint64]  # noqa: N815 (COLMAP's name) (M,)
-    method: str  # "flann" | "exact"
-    flann_checks: int = 128
+    method: str  # "ivf" | "exact"
+    ivf_lists: int = 0  # k-means cells of the IVF (0 for exact search)
+    ivf_probe: int = 0  # cells searched per query (0 for exact search)
     _searcher: Any = field(default=None, repr=False, compare=False)
 
     @property
@@ -467,6 +484,15 @@ def _image_descriptors(
     order: NDArray[np.int64] | None = None,
 ) -> tuple[NDArray[np.uint8], NDArray[np.int64]]:
     """(descriptors, point rows) of one image's observations that have a 3D point."""
+    desc, ok, rows = _image_selection(model, name, image, feats, order)
+    return desc[ok].astype(np.uint8, copy=False), rows
+
+
+def _image_selection(
+    model: SparseModel, name: str, image: Image, feats: ImageFeatures | ObservationFeatures,
+    order: NDArray[np.int64] | None = None,
+) -> tuple[NDArray[Any], NDArray[np.bool_], NDArray[np.int64]]:
+    """(all descriptors, mask of those with a 3D point, their point rows) of one image."""
     if isinstance(feats, ObservationFeatures):
         obs_idx, desc = np.asarray(feats.observation_idx), np.asarray(feats.descriptors)
         if len(obs_idx) and (obs_idx.min() < 0 or obs_idx.max() >= len(image.xy_px)):
@@ -480,7 +506,7 @@ def _image_descriptors(
     ids = np.asarray(image.point3D_ids, dtype=np.uint64)[obs_idx]
     rows = _point_rows(model, ids, order)  # invalid / removed points -> -1
     ok = rows >= 0
-    return desc[ok].astype(np.uint8, copy=False), rows[ok]
+    return desc, ok, rows[ok]
 
 
 def _check_aligned(name: str, image: Image, feats: ImageFeatures) -> None:
@@ -548,7 +574,7 @@ def build_descriptor_index(
     """
     if isinstance(options, RegistrationOptions):
         options = options.index
-    descs, rows = [], []
+    picked = []
     order = np.argsort(np.asarray(model.point3D_ids, dtype=np.uint64), kind="stable")
     by_name = {im.name: im for im in model.images.values()}  # image_by_name is a linear scan
     for name, feats in features.items():
@@ -556,52 +582,100 @@ def build_descriptor_index(
         if image is None:
             logger.debug("%s: not in the model, its features are not indexed", name)
             continue
-        d, r = _image_descriptors(model, name, image, feats, order)
-        descs.append(d)
-        rows.append(r)
-    if not descs or sum(len(r) for r in rows) == 0:
+        picked.append(_image_selection(model, name, image, feats, order))
+    total = sum(len(r) for _, _, r in picked)
+    if total == 0:
         raise InputError("no descriptor of any 3D point of the model: features and model disagree")
-    desc_u8 = np.concatenate(descs)  # uint8 until the kept ones are converted (memory)
-    point_rows = np.concatenate(rows)
+    desc_u8 = np.empty((total, DESCRIPTOR_DIM), dtype=np.uint8)  # filled in place: one copy
+    at = 0
+    for desc, ok, r in picked:
+        desc_u8[at:at + len(r)] = desc[ok]
+        at += len(r)
+    point_rows = np.concatenate([r for _, _, r in picked])
+    del picked
     keep = _reduce_per_point(desc_u8, point_rows, max(1, options.max_descriptors_per_point))
-    desc = np.ascontiguousarray(desc_u8[keep], dtype=np.float32)
-    point_rows = point_rows[keep]
-    del desc_u8
-    searcher = _make_searcher(desc, options)
-    method = "exact" if searcher is None else "flann"
-    logger.info("descriptor index: %d descriptors of %d points (%s)", len(desc),
-                len(np.unique(point_rows)), method)
+    if len(keep) < len(desc_u8):
+        desc_u8 = desc_u8[keep]
+        point_rows = point_rows[keep]
+    searcher = None if _use_exact(len(desc_u8), options) else _build_ivf(desc_u8, options)
+    method = "exact" if searcher is None else "ivf"
+    logger.info("descriptor index: %d descriptors of %d points (%s%s)", len(desc_u8),
+                len(np.unique(point_rows)), method,
+                "" if searcher is None else f", {searcher.nlist} cells, probe {searcher.nprobe}")
     return DescriptorIndex(
-        descriptors=desc, point_rows=point_rows,
+        descriptors=desc_u8 if searcher is None else np.zeros((0, DESCRIPTOR_DIM), np.uint8),
+        point_rows=point_rows,
         points_xyz=np.asarray(model.points_xyz, dtype=np.float64),
         point3D_ids=np.asarray(model.point3D_ids, dtype=np.uint64),
         method=method,
-        flann_checks=options.flann_checks, _searcher=searcher,
+        ivf_lists=0 if searcher is None else int(searcher.nlist),
+        ivf_probe=0 if searcher is None else int(searcher.nprobe),
+        _searcher=searcher,
     )
 
 
 def _use_exact(num_descriptors: int, options: IndexOptions) -> bool:
-    """Exact brute force or FLANN for a pool of this size."""
+    """Exact brute force or the IVF for a pool of this size."""
     if options.exact is not None:
         return bool(options.exact)
     return num_descriptors <= options.exact_max_pool
 
 
-def _make_searcher(desc: NDArray[np.float32], options: IndexOptions) -> Any:
-    """OpenCV FLANN KD-trees over the (P, 128) float32 pool, or None for exact search.
+def _build_ivf(desc: NDArray[np.uint8], options: IndexOptions) -> Any:
+    """FAISS IVF over the (P, 128) uint8 pool, lists stored as uint8 (``QT_8bit_direct``).
 
-    Exact search (BLAS matrix products) costs O(queries × pool): ~0.4 s for 6k query
-    keypoints against 2.5k descriptors here, but tens of seconds against the 100k+
-    descriptors of real models, where FLANN's randomised KD-trees (4 trees, 128
-    checks) take ~2 s and return ~99 % of the exact first neighbours. The trees are
-    random: OpenCV's (thread-local) RNG is seeded right before building so that the
-    same input gives the same index and the same matches.
+    Memory ~136 bytes per descriptor (code + id): 0.27 GB at 2M descriptors, where FLANN's
+    float32 pool and 4 KD-trees took 2.9 GB. The lists are filled one call each with their
+    final content (``_fill_lists``): FAISS's own ``add`` grows every list entry by entry, and
+    the doubling vectors and freed buffers left ~1 GB more resident at 2M descriptors.
     """
-    if _use_exact(len(desc), options):
-        return None
-    cv2.setRNGSeed(int(options.seed))
-    params = {"algorithm": 1, "trees": int(options.flann_trees)}  # 1 = FLANN_INDEX_KDTREE
-    return cv2.flann_Index(desc, params)  # type: ignore[attr-defined]
+    nlist = options.ivf_lists or int(np.clip(round(np.sqrt(len(desc))), 16, 4096))
+    nlist = max(1, min(nlist, len(desc)))
+    rng = np.random.default_rng(options.seed)
+    n_train = min(len(desc), nlist * max(1, options.train_per_list))
+    sample = np.sort(rng.choice(len(desc), size=n_train, replace=False))
+    train = np.ascontiguousarray(desc[sample], dtype=np.float32)
+    quantizer = _coarse_quantizer(train, options.coarse_dims)
+    ivf = faiss.IndexIVFScalarQuantizer(quantizer, DESCRIPTOR_DIM, nlist,
+                                        faiss.ScalarQuantizer.QT_8bit_direct, faiss.METRIC_L2,
+                                        False)  # store the descriptors, not their residuals
+    ivf.cp.seed = int(options.seed)
+    ivf.cp.min_points_per_centroid = 1  # small pools: no console warning from FAISS
+    ivf.cp.max_points_per_centroid = max(1, options.train_per_list)
+    ivf.train(train)  # k-means centroids in 128-d, assigned through the quantizer
+    _fill_lists(ivf, quantizer, desc)
+    ivf.nprobe = min(nlist, options.ivf_probe)
+    return ivf
+
+
+def _coarse_quantizer(train: NDArray[np.float32], dims: int) -> Any:
+    """The index that assigns descriptors to cells: exact L2 in 128-d, or in the first
+    ``dims`` principal components of the training sample (cheaper, consistent for queries
+    and pool alike since both go through it)."""
+    if dims in (0, DESCRIPTOR_DIM) or len(train) < 4 * DESCRIPTOR_DIM:  # too few for a PCA
+        return faiss.IndexFlatL2(DESCRIPTOR_DIM)
+    pca = faiss.PCAMatrix(DESCRIPTOR_DIM, dims)
+    pca.train(train)
+    return faiss.IndexPreTransform(pca, faiss.IndexFlatL2(dims))
+
+
+def _fill_lists(ivf: Any, quantizer: Any, desc: NDArray[np.uint8]) -> None:
+    """Put every descriptor in its nearest cell's list; ids are the pool rows. A
+    ``QT_8bit_direct`` code is the uint8 descriptor itself, so no encoding is needed."""
+    chunk = 1 << 15  # 32768 × 512 bytes = 16 MB of float32 at a time
+    cell = np.concatenate([
+        quantizer.search(np.ascontiguousarray(desc[s:s + chunk], dtype=np.float32), 1)[1][:, 0]
+        for s in range(0, len(desc), chunk)])
+    order = np.argsort(cell, kind="stable")
+    starts = np.searchsorted(cell[order], np.arange(ivf.nlist + 1))
+    for lst in range(ivf.nlist):
+        rows = order[starts[lst]:starts[lst + 1]]
+        if len(rows) == 0:
+            continue
+        ids = np.ascontiguousarray(rows, dtype=np.int64)
+        codes = np.ascontiguousarray(desc[rows])
+        ivf.invlists.add_entries(lst, len(rows), faiss.swig_ptr(ids), faiss.swig_ptr(codes))
+    ivf.ntotal = len(desc)
 
 
 def _exact_knn(pool: NDArray[np.float32], query: NDArray[np.float32], k: int) -> tuple[
@@ -623,28 +697,13 @@ def _exact_knn(pool: NDArray[np.float32], query: NDArray[np.float32], k: int) ->
     return idx, np.sqrt(np.maximum(d2, 0.0))
 
 
-def _flann_knn(index: DescriptorIndex, query: NDArray[np.float32], k: int) -> tuple[
-        NDArray[Any], NDArray[Any]]:
-    """FLANN k-NN over query chunks in threads (OpenCV releases the GIL; each query's search
-    is independent of the others, so the result is identical to one call: 2.2x on 2 cores)."""
-    params = {"checks": index.flann_checks}
-    n = min(os.cpu_count() or 1, 8, len(query) // 1000)
-    if n <= 1:
-        return index._searcher.knnSearch(query, k, params=params)  # type: ignore[no-any-return]
-    with ThreadPoolExecutor(n) as pool:
-        parts = list(pool.map(lambda q: index._searcher.knnSearch(q, k, params=params),
-                              np.array_split(query, n)))
-    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
-
-
 def _knn(index: DescriptorIndex, query: NDArray[np.float32], k: int) -> tuple[
         NDArray[np.int64], NDArray[np.float32]]:
-    """(Q, k) pool indices and L2 distances of the k nearest descriptors."""
+    """(Q, k) pool indices and L2 distances of the k nearest descriptors (sorted)."""
     if index.method == "exact":
-        return _exact_knn(index.descriptors, query, k)
-    idx, d2 = _flann_knn(index, query, k)
+        return _exact_knn(index.descriptors.astype(np.float32), query, k)
+    d2, idx = index._searcher.search(query, k)  # FAISS: squared L2, −1 for no neighbour found
     idx = np.asarray(idx, dtype=np.int64)
-    # FLANN's KD-tree returns squared L2 distances; −1 marks a neighbour it did not find.
     dist = np.where(idx >= 0, np.sqrt(np.maximum(d2, 0)), np.inf).astype(np.float32)
     return np.maximum(idx, 0), dist
 

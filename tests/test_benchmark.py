@@ -53,6 +53,11 @@ def test_smallest_case_has_every_stage_and_sane_numbers(work: Path) -> None:
     assert r["registered"] == 1 and r["n_images"] == 1 and r["inliers"][0] >= 30
     assert 0.30 < r["scale"] < 0.33  # the demo truth is ~0.315 m per model unit
     assert r["peak_rss_bytes"] >= r["baseline_rss_bytes"] > 50 * 2**20
+    # per-stage peaks (VmHWM reset between stages): SIFT's own working memory is split out
+    assert set(r["stage_peak_bytes"]) >= {"sift", "index_build", "mesh_read", "raycast"}
+    assert max(r["stage_peak_bytes"].values()) == r["peak_rss_bytes"]
+    assert r["baseline_rss_bytes"] < r["peak_wo_sift_bytes"] <= r["peak_rss_bytes"]
+    assert 0 < r["sift_working_bytes"] < r["stage_peak_bytes"]["sift"]
     assert r["mesh_bytes"] == (work / "mesh_20000.ply").stat().st_size
     d = bench.derived(r)
     assert d["mem_budget"] == 2 * r["mesh_bytes"] + r["model_bytes"]

@@ -84,3 +84,51 @@ def test_run_log_and_provenance(baseline: Any, small_dataset: Any) -> None:
     assert mesh["bytes"] == small_dataset.mesh_path.stat().st_size
     assert any(p.endswith(".png") for p in by_path)
     assert prov["options"]["method"] == "all" and "registration" in prov["options"]
+
+
+def test_mesh_check_on_the_crop_is_the_whole_mesh_check(baseline: Any,
+                                                        small_dataset: Any) -> None:
+    """The report's mesh–model check, computed on the cropped mesh, equals the whole mesh's;
+    a mesh that does not fit the model (shifted by 3 % of the extent) falls back to the whole
+    mesh and is flagged; the crop keeps a small part of the mesh."""
+    import dataclasses
+
+    import numpy as np
+
+    from sfm_laserscale.io.meshes import TriangleMesh
+    from sfm_laserscale.pipeline import (
+        crop_mesh,
+        load_inputs,
+        mesh_check_points,
+        mesh_model_agreement,
+    )
+    from sfm_laserscale.raycast import MeshRaycaster
+
+    opts = ScaleOptions(progress=False)
+    loaded = load_inputs(scale_inputs_for(small_dataset), opts)
+    runs = baseline.images
+    pts = mesh_check_points(runs, opts, loaded.model.extent)
+    assert len(pts) >= 50  # the registered laser images' inliers near the spots
+    crop = crop_mesh(runs, loaded, opts)
+    assert crop.kept_fraction < 0.5
+    assert loaded.mesh is not None
+    whole = MeshRaycaster(loaded.mesh.vertices, loaded.mesh.triangles)
+    extent = loaded.model.extent
+
+    def never() -> TriangleMesh:
+        raise AssertionError("the whole mesh is not needed for a mesh that fits")
+
+    on_crop = mesh_model_agreement(pts, crop.raycaster(), extent, never)
+    # equal up to Open3D's float32 distances (crop and mesh are centred differently)
+    assert on_crop == pytest.approx(mesh_model_agreement(pts, whole, extent, never), rel=1e-3)
+    assert on_crop == pytest.approx(baseline.report["checks"]["mesh_model_agreement"])
+    assert 0 < on_crop < 0.005
+    assert loaded.mesh is not None
+    shift = np.array([0.0, 0.0, 0.03 * loaded.model.extent])
+    moved_mesh = TriangleMesh(loaded.mesh.vertices + shift, loaded.mesh.triangles)
+    bad = crop_mesh(runs, dataclasses.replace(loaded, mesh=moved_mesh), opts).raycaster()
+    want = float(np.median(MeshRaycaster(moved_mesh.vertices, moved_mesh.triangles)
+                           .distances(pts))) / loaded.model.extent
+    got = mesh_model_agreement(pts, bad, extent, lambda: moved_mesh)
+    assert got == pytest.approx(want, rel=1e-6)
+    assert want > 0.02  # beyond the crop's exact radius: the whole mesh was used

@@ -164,7 +164,7 @@ def test_match_ratio_test_uses_another_point_and_keeps_one_match_per_point(exact
     feats = {"a.jpg": ImageFeatures(xy, np.clip(desc, 0, 255).astype(np.uint8)),
              "other.jpg": ImageFeatures(xy[:1], desc[:1].astype(np.uint8))}  # not in the model
     index = build_descriptor_index(model, feats, IndexOptions(exact=exact))
-    assert index.method == ("exact" if exact else "flann")
+    assert index.method == ("exact" if exact else "ivf")
     assert index.num_descriptors == 6 and index.num_points == 5
     query = np.stack([base[0] + 1,  # point 10: both neighbours are point 10 -> accepted
                       base[2],  # equidistant from points 12 and 13: ambiguous -> rejected
@@ -405,7 +405,7 @@ def test_held_out_fixture_image_registers_on_its_original_pose(
     assert res.num_inliers >= 300 and res.reproj_error_px < 2.0
     assert len(res.inlier_xy_px) == len(res.inlier_xyz) == res.num_inliers
     assert set(res.inlier_point3D_ids.tolist()) <= set(held_out.point3D_ids.tolist())
-    # Same input and seeds: same pose (FLANN trees are seeded too).
+    # Same input and seeds: same pose (the IVF k-means is seeded too).
     flann = build_descriptor_index(held_out, feats, IndexOptions(exact=False))
     a = register_image(feats[name], model.cameras[truth.camera_id], flann, RegistrationOptions())
     flann2 = build_descriptor_index(held_out, feats, IndexOptions(exact=False))
@@ -423,3 +423,36 @@ def test_query_from_another_resolution_is_refused(
     small = Camera(1, "SIMPLE_PINHOLE", 960, 540, np.array([923.0, 480.0, 270.0]))
     with pytest.raises(InputError, match="outside"):
         register_image(feats["03.jpg"], small, index, RegistrationOptions())
+
+
+@pytest.mark.parametrize("coarse_dims", [0, 16])
+def test_ivf_index_lists_equal_faiss_own_add_and_find_near_duplicates(coarse_dims: int) -> None:
+    """The IVF's lists, filled once per list with the uint8 codes, search exactly like an
+    index filled by FAISS's own ``add`` (cells assigned in 128-d or in a PCA projection); a
+    perturbed copy of a pool descriptor finds it, at its exact L2 distance."""
+    import faiss
+
+    from sfm_laserscale.registration import _build_ivf, _coarse_quantizer
+
+    rng = np.random.default_rng(7)
+    pool = rng.integers(0, 120, (30000, 128)).astype(np.uint8)
+    opts = IndexOptions(coarse_dims=coarse_dims)
+    ivf = _build_ivf(pool, opts)
+    assert ivf.ntotal == len(pool) and ivf.nlist == round(np.sqrt(len(pool)))
+    query = (pool[:300].astype(np.int16) + rng.integers(-3, 4, (300, 128))).clip(0, 255)
+    q = query.astype(np.float32)
+    d2, idx = ivf.search(q, 2)
+    np.testing.assert_array_equal(idx[:, 0], np.arange(300))
+    np.testing.assert_array_equal(d2[:, 0], ((q - pool[:300]) ** 2).sum(axis=1))  # exact L2²
+    pick = np.sort(np.random.default_rng(0).choice(len(pool), ivf.nlist * 40, replace=False))
+    train = pool[pick].astype(np.float32)
+    ref = faiss.IndexIVFScalarQuantizer(_coarse_quantizer(train, coarse_dims), 128, ivf.nlist,
+                                        faiss.ScalarQuantizer.QT_8bit_direct, faiss.METRIC_L2,
+                                        False)
+    ref.cp.seed, ref.cp.min_points_per_centroid, ref.cp.max_points_per_centroid = 0, 1, 40
+    ref.train(train)
+    ref.add(pool.astype(np.float32))
+    ref.nprobe = ivf.nprobe
+    d2_ref, idx_ref = ref.search(q, 2)
+    np.testing.assert_array_equal(idx, idx_ref)
+    np.testing.assert_array_equal(d2, d2_ref)

@@ -26,6 +26,7 @@ import base64
 import io
 import json
 import logging
+import mmap
 import os
 import re
 import shutil
@@ -69,9 +70,13 @@ def _no_progress(nbytes: int) -> None:
 
 @dataclass(frozen=True, eq=False)
 class TriangleMesh:
-    """Vertices (V, 3) float64 in model units and triangles (F, 3) int32 vertex indices."""
+    """Vertices (V, 3) in model units and triangles (F, 3) int32 vertex indices.
 
-    vertices: NDArray[np.float64]
+    Vertices are float64, or float32 when the file stores float32 (binary PLY): every value is
+    then exact and half the memory (120 MB less at 10M vertices); do the maths in float64.
+    """
+
+    vertices: NDArray[np.floating]
     triangles: NDArray[np.int32]
 
     def __post_init__(self) -> None:
@@ -135,7 +140,9 @@ def _validated_mesh(vertices: NDArray[Any], faces: NDArray[Any], path: Path) -> 
     Avoids large temporaries (fresh memory is costly): checks run on the inputs as given and
     each output array is allocated once.
     """
-    vertices = np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
+    keep32 = vertices.dtype == np.float32
+    vertices = np.ascontiguousarray(vertices, dtype=np.float32 if keep32 else np.float64)
+    vertices = vertices.reshape(-1, 3)
     faces = np.asarray(faces).reshape(-1, 3)
     if len(faces) == 0:
         raise InputError("mesh has no triangles (a point cloud?)", path)
@@ -554,6 +561,18 @@ def _map_file(path: Path) -> NDArray[np.uint8]:
     return np.memmap(path, dtype=np.uint8, mode="r")
 
 
+def _drop_pages(buf: NDArray[np.uint8], start: int, end: int) -> None:
+    """Release the read pages of ``buf[start:end]`` from this process's resident memory
+    (they stay in the page cache); a no-op where madvise is not available."""
+    mm = getattr(buf, "_mmap", None)
+    if mm is None or not hasattr(mm, "madvise") or not hasattr(mmap, "MADV_DONTNEED"):
+        return
+    page = mmap.PAGESIZE
+    lo = -(-start // page) * page  # whole pages inside the range only
+    if end - lo >= page:
+        mm.madvise(mmap.MADV_DONTNEED, lo, (end - lo) // page * page)
+
+
 def _load_ply_binary(path: Path, header: _PlyHeader) -> tuple[NDArray[Any], NDArray[Any]]:
     vertex, face, index_name = _ply_mesh_props(header, path)
     buf = _map_file(path)
@@ -561,9 +580,12 @@ def _load_ply_binary(path: Path, header: _PlyHeader) -> tuple[NDArray[Any], NDAr
     for elem in header.elements:
         data = _scan_binary_element(buf, pos, elem, header.byteorder, path)
         if elem is vertex:
-            vertices = np.empty((elem.count, 3), dtype=np.float64)
+            codes = {p.code for p in (vertex.prop(a) for a in "xyz") if p is not None}
+            vertices = np.empty((elem.count, 3), dtype=np.float32 if codes == {"f4"}
+                                else np.float64)  # float32 as stored: exact, half the memory
             for k, axis in enumerate("xyz"):
                 vertices[:, k] = _binary_scalar(buf, data, axis)
+            _drop_pages(buf, data.start, data.end)
         elif elem is face:
             faces = _fan_triangulate(_binary_lists(buf, data, index_name), elem.count, path)
         pos = data.end

@@ -365,10 +365,10 @@ def _check_warnings(report: dict[str, Any], opt: ReportChecksOptions) -> list[di
             _w(
                 "warning",
                 "mesh_model",
-                f"Mesh–model agreement is poor: the sparse points lie a median "
-                f"{100 * mma:.2f} % of the model's extent from the mesh (expected below "
-                f"{100 * opt.mesh_agreement_max:.1f} %). Is the mesh from this model, in "
-                "the same frame?",
+                "Mesh–model agreement is poor: the model points matched in the laser images "
+                f"near the spots lie a median {100 * mma:.2f} % of the model's extent from the "
+                f"mesh (expected below {100 * opt.mesh_agreement_max:.1f} %). Is the mesh from "
+                "this model, in the same frame?",
             )
         )
     pj = report["methods"].get("pcm_joint")

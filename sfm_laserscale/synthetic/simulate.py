@@ -400,7 +400,8 @@ def load_scene(inputs: SimulationInputs, options: SimulationOptions
         from sfm_laserscale.io.meshes import load_mesh
 
         mesh = load_mesh(inputs.mesh)
-        return build_scene(mesh.vertices, mesh.triangles, str(inputs.mesh), options)
+        return build_scene(np.asarray(mesh.vertices, dtype=np.float64), mesh.triangles,
+                           str(inputs.mesh), options)
     from sfm_laserscale.synthetic.scene import SceneOptions, make_scene
 
     # the texture is not needed: a tiny one leaves the geometry (drawn first) unchanged
