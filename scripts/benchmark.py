@@ -44,7 +44,8 @@ WRAPPED = (
     ("model_read", "sfm_laserscale.pipeline", "load_model"),
     ("mesh_read", "sfm_laserscale.pipeline", "load_mesh"),
     ("db_read", "sfm_laserscale.pipeline", "load_model_features"),
-    ("index_build", "sfm_laserscale.pipeline", "build_descriptor_index"),
+    ("index_build", "sfm_laserscale.pipeline", "descriptor_pool"),
+    ("index_build", "sfm_laserscale.pipeline", "index_pool"),
     ("mesh_crop", "sfm_laserscale.pipeline", "crop_mesh"),
     ("raycast_build", "sfm_laserscale.raycast", "MeshRaycaster"),
     ("image_read", "sfm_laserscale.pipeline", "read_rgb"),
@@ -260,14 +261,22 @@ def instrument(rec: dict[str, Any]) -> None:
 def _record_index(rec: dict[str, Any]) -> None:
     """Keep the descriptor index's search method and pool size (exact scan or IVF)."""
     import sfm_laserscale.pipeline as pipeline
-    build = pipeline.build_descriptor_index
+    build = pipeline.index_pool
 
     def recorded(*args: Any, **kwargs: Any) -> Any:
         index = build(*args, **kwargs)
         rec["index"] = {"method": index.method, "descriptors": index.num_descriptors,
                         "ivf_lists": index.ivf_lists, "ivf_probe": index.ivf_probe}
         return index
-    pipeline.build_descriptor_index = recorded  # type: ignore[assignment]
+    pipeline.index_pool = recorded  # type: ignore[assignment]
+    crop = pipeline.crop_mesh
+
+    def cropped(*args: Any, **kwargs: Any) -> Any:
+        out = crop(*args, **kwargs)
+        rec["crop"] = {"kept_triangles": len(out.triangles),
+                       "kept_fraction": round(out.kept_fraction, 5)}
+        return out
+    pipeline.crop_mesh = cropped  # type: ignore[assignment]
 
 
 def copy_seconds(src: Path, work: Path, repeat: int = 2) -> float:
@@ -325,6 +334,7 @@ def run_case(work: Path, points: int, triangles: int, images: int,
         "registered": sum(r.success for r in regs), "n_images": len(res.images),
         "inliers": [r.num_inliers for r in regs], "scale": res.scale.value,
         "loadavg_before": load0, "loadavg_after": loadavg(), "index": rec.get("index", {}),
+        "crop": rec.get("crop", {}),
         "not_wrapped": rec.get("not_wrapped", []),
     }
 
@@ -488,8 +498,8 @@ def markdown(results: list[dict[str, Any]], sl: dict[str, dict[str, float]]) -> 
     lines += ["", "| case | rest (s) | rest / SIFT (target < 0.5) | rescale vs copy (target ≥ 0.5)"
               " | peak RSS (GB) | above imports (GB) | SIFT working set (GB) | libraries' fixed "
               "(GB) | input-dependent: above imports − SIFT set − fixed (GB) | budget "
-              "2·mesh+model (GB) | peak in stage | registered | inliers | descriptor index |",
-              "|---" * 14 + "|"]
+              "2·mesh+model (GB) | peak in stage | registered | inliers | descriptor index | "
+              "mesh kept by the crop |", "|---" * 15 + "|"]
     for r in ok:
         d = derived(r)
         lines.append(
@@ -502,7 +512,8 @@ def markdown(results: list[dict[str, Any]], sl: dict[str, dict[str, float]]) -> 
             f"{d['mem_budget'] / 2**30:.2f} | {r['peak_stage']} | "
             f"{r['registered']}/{r['n_images']} | {r['inliers']} | "
             f"{r.get('index', {}).get('method', '?')}, "
-            f"{r.get('index', {}).get('descriptors', 0):,} desc. |")
+            f"{r.get('index', {}).get('descriptors', 0):,} desc. | "
+            f"{100 * r.get('crop', {}).get('kept_fraction', float('nan')):.2f} % |")
     for r in results:
         if "error" in r:
             lines.append(f"\nFAILED {_fmt_case(r['case'])}: {r['error'][-500:]} "

@@ -54,8 +54,9 @@ from sfm_laserscale.registration import (
     RegistrationResult,
     SiftOptions,
     TieOptions,
-    build_descriptor_index,
+    descriptor_pool,
     extract_sift,
+    index_pool,
     register_image,
 )
 from sfm_laserscale.rig import Rig, load_rig
@@ -188,13 +189,18 @@ def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
         replace(options.tie, progress=options.progress)
     )
     try:
-        index = build_descriptor_index(model, features, options.index)
+        pool = descriptor_pool(model, features, options.index)
     except InputError as exc:  # name the descriptor source as well as the image
         source = inputs.database or inputs.features or inputs.images
         if source is None or exc.path is None:
             raise
         raise InputError(f"image {exc.path}: {exc.problem}", source) from exc
-    del features  # the index holds what it needs; the mesh is read after (peak memory)
+    # peak memory: the features, the pool and the index are never all held at once, and the
+    # mesh is read once the index is built
+    del features
+    trim_heap()
+    index = index_pool(model, pool, options.index)
+    del pool
     trim_heap()
     mesh = load_mesh(inputs.mesh)
     return LoadedInputs(model, mesh, rig, laser_images, manual, index)

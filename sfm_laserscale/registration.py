@@ -561,6 +561,14 @@ def _rank_per_point(
     return np.sort(order[rank < max_per_point])
 
 
+@dataclass(frozen=True)
+class DescriptorPool:
+    """The descriptors to index: (P, 128) uint8 and the row of each one's 3D point."""
+
+    descriptors: NDArray[np.uint8]
+    point_rows: NDArray[np.int64]
+
+
 def build_descriptor_index(
     model: SparseModel,
     features: Mapping[str, ImageFeatures] | Mapping[str, ObservationFeatures],
@@ -571,7 +579,19 @@ def build_descriptor_index(
     ``ImageFeatures`` follow the COLMAP database convention (keypoint i = observation i
     of the image in the model, checked); ``ObservationFeatures`` come from
     ``features_from_images``. Features of images absent from the model are ignored.
+    (:func:`descriptor_pool` then :func:`index_pool`: a caller short of memory drops the
+    features between the two.)
     """
+    return index_pool(model, descriptor_pool(model, features, options), options)
+
+
+def descriptor_pool(
+    model: SparseModel,
+    features: Mapping[str, ImageFeatures] | Mapping[str, ObservationFeatures],
+    options: IndexOptions | RegistrationOptions,
+) -> DescriptorPool:
+    """The descriptors of the observations with a 3D point, at most
+    ``max_descriptors_per_point`` per point (those nearest the point's mean descriptor)."""
     if isinstance(options, RegistrationOptions):
         options = options.index
     picked = []
@@ -597,6 +617,15 @@ def build_descriptor_index(
     if len(keep) < len(desc_u8):
         desc_u8 = desc_u8[keep]
         point_rows = point_rows[keep]
+    return DescriptorPool(desc_u8, point_rows)
+
+
+def index_pool(model: SparseModel, pool: DescriptorPool,
+               options: IndexOptions | RegistrationOptions) -> DescriptorIndex:
+    """The searchable index of a descriptor pool: exact search for small pools, else IVF."""
+    if isinstance(options, RegistrationOptions):
+        options = options.index
+    desc_u8, point_rows = pool.descriptors, pool.point_rows
     searcher = None if _use_exact(len(desc_u8), options) else _build_ivf(desc_u8, options)
     method = "exact" if searcher is None else "ivf"
     logger.info("descriptor index: %d descriptors of %d points (%s%s)", len(desc_u8),
