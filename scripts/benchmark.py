@@ -201,6 +201,13 @@ def case_inputs(work: Path, points: int, triangles: int, images: int,
             "lasers": lasers, "rig": demo / "rig.toml"}
 
 
+def scale_inputs(paths: dict[str, Path]) -> Any:
+    """The ``ScaleInputs`` of a case's input paths (see ``case_inputs``)."""
+    from sfm_laserscale.pipeline import ScaleInputs
+    return ScaleInputs(model=paths["model"], mesh=paths["mesh"], laser_images=(paths["lasers"],),
+                       rig=paths["rig"], database=paths["database"])
+
+
 def dir_bytes(path: Path) -> int:
     """Total size of a file or of the files of a folder."""
     if path.is_file():
@@ -294,15 +301,13 @@ def copy_seconds(src: Path, work: Path, repeat: int = 2) -> float:
 def run_case(work: Path, points: int, triangles: int, images: int,
              camera: str = "vga") -> dict[str, Any]:
     """Run the scale job on one case in this process; timings, memory, sizes and results."""
-    from sfm_laserscale.pipeline import ScaleInputs, ScaleOptions, run_scale
+    from sfm_laserscale.pipeline import ScaleOptions, run_scale
     paths = case_inputs(work, points, triangles, images, camera)
     rec: dict[str, Any] = {"seconds": {}, "peak_bytes": 0, "peak_stage": "", "stage_peak": {}}
     baseline = maxrss_bytes()  # interpreter + numpy/open3d/pycolmap/opencv imported
     instrument(rec)
     _record_index(rec)
-    inputs = ScaleInputs(model=paths["model"], mesh=paths["mesh"],
-                         laser_images=(paths["lasers"],), rig=paths["rig"],
-                         database=paths["database"])
+    inputs = scale_inputs(paths)
     load0 = loadavg()
     with tempfile.TemporaryDirectory(dir=work, prefix="out_") as tmp:
         t0 = time.perf_counter()
@@ -346,12 +351,10 @@ def fixed_library_memory(work: Path, camera: str = "vga") -> dict[str, int]:
     import gc
 
     from sfm_laserscale.memory import trim_heap
-    from sfm_laserscale.pipeline import ScaleInputs, ScaleOptions, run_scale
+    from sfm_laserscale.pipeline import ScaleOptions, run_scale
     cold = rss_bytes()
     paths = case_inputs(work, WARM["points"], WARM["triangles"], WARM["images"], camera)
-    inputs = ScaleInputs(model=paths["model"], mesh=paths["mesh"],
-                         laser_images=(paths["lasers"],), rig=paths["rig"],
-                         database=paths["database"])
+    inputs = scale_inputs(paths)
     with tempfile.TemporaryDirectory(dir=work, prefix="warm_") as tmp:
         run_scale(inputs, Path(tmp) / "out", ScaleOptions(progress=False))
     gc.collect()

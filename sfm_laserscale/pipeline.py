@@ -28,7 +28,7 @@ from sfm_laserscale.methods.pcm_joint import (
     PcmJointResult,
     estimate_pcm_joint,
 )
-from sfm_laserscale.model import Camera, SparseModel, Spot
+from sfm_laserscale.model import Camera, Pose, SparseModel, Spot
 from sfm_laserscale.provenance import (
     captured_colmap_log,
     captured_log,
@@ -218,7 +218,7 @@ def _spots_for(
     return det.spots, det, dict(det.missing)
 
 
-def _failed(image: LaserImage, reason: str | None, **kw: Any) -> ImageRun:
+def _image_run(image: LaserImage, reason: str | None, **kw: Any) -> ImageRun:
     base: dict[str, Any] = dict(name=image.name, path=image.path, camera=image.camera,
                                 registration=None, detection=None, spots=(), hits=(),
                                 spot_reasons={}, estimates=None, reason=reason)
@@ -232,11 +232,11 @@ def detect_and_register(image: LaserImage, loaded: LoadedInputs, options: ScaleO
     registered image comes back with ``reason`` None and no hits yet (see cast_and_estimate)."""
     camera = image.camera
     if camera is None:
-        return _failed(image, "not a readable image")
+        return _image_run(image, "not a readable image")
     try:
         rgb = read_rgb(image.path)
     except InputError as exc:
-        return _failed(image, f"cannot read image: {exc.problem}")
+        return _image_run(image, f"cannot read image: {exc.problem}")
     with timer("detect"):
         spots, det, spot_reasons = _spots_for(image.name, rgb, camera, loaded, options)
     with timer("register"):
@@ -244,21 +244,29 @@ def detect_and_register(image: LaserImage, loaded: LoadedInputs, options: ScaleO
                              options.registration)
     done = dict(registration=reg, detection=det, spots=spots, spot_reasons=spot_reasons)
     if not reg.success or reg.cam_from_world is None:
-        return _failed(image, reg.reason or "registration failed", **done)
-    return _failed(image, None, **done)  # registered: hits and estimates to come
+        return _image_run(image, reg.reason or "registration failed", **done)
+    return _image_run(image, None, **done)  # registered: hits and estimates to come
 
 
-def _registered(runs: Sequence[ImageRun]) -> list[ImageRun]:
-    return [r for r in runs if r.reason is None and r.registration is not None
-            and r.registration.cam_from_world is not None and r.camera is not None]
+def _view(run: ImageRun) -> tuple[Camera, Pose] | None:
+    """Camera and cam_from_world of a registered image still without a reason, else None."""
+    if run.reason is not None or run.camera is None or run.registration is None:
+        return None
+    pose = run.registration.cam_from_world
+    return None if pose is None else (run.camera, pose)
+
+
+def _views(runs: Sequence[ImageRun]) -> list[tuple[ImageRun, Camera, Pose]]:
+    return [(r, *v) for r in runs if (v := _view(r)) is not None]
 
 
 def crop_mesh(runs: Sequence[ImageRun], loaded: LoadedInputs,
               options: ScaleOptions) -> MeshCrop:
     """The mesh cropped to every ray the registered images' spots will cast and to the
-    mesh-check points (exact: raycast.crop_for_rays)."""
-    rays = [spot_cast_rays(r.spots, r.camera, r.registration.cam_from_world,  # type: ignore
-                           options.spot_cast) for r in _registered(runs)]
+    mesh-check points (exact: raycast.crop_for_rays). The check itself runs after casting, on
+    the points of the images still estimated: a subset of these."""
+    rays = [spot_cast_rays(r.spots, camera, pose, options.spot_cast)
+            for r, camera, pose in _views(runs)]
     origins = np.concatenate([o for o, _ in rays]) if rays else np.zeros((0, 3))
     dirs = np.concatenate([d for _, d in rays]) if rays else np.zeros((0, 3))
     if loaded.mesh is None:
@@ -274,16 +282,16 @@ def mesh_check_points(runs: Sequence[ImageRun], options: ScaleOptions,
     """(N, 3) the registered laser images' inlier model points near their spots' rays: where
     the scale is read off the mesh, so where mesh and model must agree (DESIGN §6 checks)."""
     pts, dist = [], []
-    for r in _registered(runs):
-        reg = r.registration
-        if not r.spots or reg is None or reg.cam_from_world is None or r.camera is None:
+    for r, camera, pose in _views(runs):
+        if not r.spots or r.registration is None:
             continue
+        inliers = r.registration.inlier_xyz
         xy = np.array([[s.x, s.y] for s in r.spots], dtype=np.float64)
-        origins, dirs = pixel_rays(r.camera, reg.cam_from_world.inverse(), xy)
-        rel = reg.inlier_xyz[:, None, :] - origins[None]  # (K, S, 3)
+        origins, dirs = pixel_rays(camera, pose.inverse(), xy)
+        rel = inliers[:, None, :] - origins[None]  # (K, S, 3)
         along = np.maximum(np.einsum("ksj,sj->ks", rel, dirs), 0.0)
         off = np.linalg.norm(rel - along[..., None] * dirs[None], axis=2).min(axis=1)
-        pts.append(reg.inlier_xyz)
+        pts.append(inliers)
         dist.append(off)
     if not pts:
         return np.zeros((0, 3))
@@ -323,19 +331,18 @@ def mesh_model_agreement(points: np.ndarray, caster: MeshRaycaster, extent: floa
 def cast_and_estimate(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster,
                       options: ScaleOptions, timer: Timer) -> ImageRun:
     """Cast the spots of a registered image into the mesh and estimate the scale."""
-    if run.reason is not None or run.camera is None or run.registration is None:
+    view = _view(run)
+    if view is None or run.registration is None:
         return run
-    pose = run.registration.cam_from_world
-    if pose is None:
-        return run
+    camera, pose = view
     with timer("raycast"):
-        cast = cast_spots(run.spots, run.camera, pose, caster, options.spot_cast)
+        cast = cast_spots(run.spots, camera, pose, caster, options.spot_cast)
     spot_reasons = {**run.spot_reasons, **cast.reasons}
     if not cast.hits:
         why = ("no laser spot found" if not run.spots else
                "no usable spot hit on the mesh: " + "; ".join(sorted(set(cast.reasons.values()))))
         return replace(run, spot_reasons=spot_reasons, reason=why)
-    obs = ImageObservation(image=run.name, camera=run.camera, cam_from_world=pose,
+    obs = ImageObservation(image=run.name, camera=camera, cam_from_world=pose,
                            pose_covariance=run.registration.covariance, hits=cast.hits)
     with timer("estimate"):
         est = estimate_image(obs, loaded.rig, options.estimation)

@@ -111,26 +111,14 @@ class MeshRaycaster:
         return RaycastResult(hit=hit, xyz=xyz, normal=n, distance=t, primitive_id=prim)
 
     def distances(self, xyz: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Unsigned distance of (N, 3) points to the mesh surface (model units)."""
+        """Unsigned distance of (N, 3) points to the mesh surface (model units); on a crop,
+        exact up to its ``coverage.point_radius`` and never less than the true distance."""
         pts = np.atleast_2d(np.asarray(xyz, dtype=np.float64))
         if self.coverage is not None and not self.coverage.covers_points(pts).all():
             raise RuntimeError("point outside the cropped mesh's coverage: crop for it")
         pts = pts - self.offset
         out = self._scene.compute_distance(o3d.core.Tensor.from_numpy(pts.astype(np.float32)))
         return np.asarray(out.numpy(), dtype=np.float64)
-
-    def median_distance(self, xyz: NDArray[np.float64], max_points: int = 20000,
-                        seed: int = 0) -> float:
-        """Median distance of points to the mesh (NaN for no points); above ``max_points``
-        points, of a seeded random subset (the median's error is ~1/√max_points of the spread:
-        a 1M-point model took 36 s in full)."""
-        pts = np.atleast_2d(np.asarray(xyz, dtype=np.float64))
-        if len(xyz) == 0:
-            return float("nan")
-        if len(pts) > max_points:
-            rng = np.random.default_rng(seed)
-            pts = pts[rng.choice(len(pts), size=max_points, replace=False)]
-        return float(np.median(self.distances(pts)))
 
 
 def pixel_rays(
@@ -295,12 +283,8 @@ class CropCoverage:
         return tuple(int(v) for v in self.ray_cells.shape)  # type: ignore[return-value]
 
     def cells_of(self, xyz: NDArray[np.floating]) -> NDArray[np.int64]:
-        """(N, 3) cell indices of (N, 3) points, clamped to the grid (float32 points are
-        binned in float32: an error ~1e-7 of the coordinates, far inside the dilation's
-        0.75-cell margin)."""
-        ftype = np.dtype(np.float32 if xyz.dtype == np.float32 else np.float64)
-        rel = (xyz - self.lo.astype(ftype)) * ftype.type(1.0 / self.cell)
-        return np.clip(np.floor(rel).astype(np.int64), 0, np.array(self.shape) - 1)
+        """(N, 3) cell indices of (N, 3) points, clamped to the grid."""
+        return _cells(self.lo, self.cell, self.shape, xyz)
 
     def covers_rays(self, origins: NDArray[np.float64],
                     unit_dirs: NDArray[np.float64]) -> NDArray[np.bool_]:
@@ -333,6 +317,15 @@ class MeshCrop:
     def raycaster(self) -> MeshRaycaster:
         """A caster over the crop that refuses rays and points it was not made for."""
         return MeshRaycaster(self.vertices, self.triangles, coverage=self.coverage)
+
+
+def _cells(lo: NDArray[np.float64], cell: float, shape: tuple[int, int, int],
+           xyz: NDArray[np.floating]) -> NDArray[np.int64]:
+    """(N, 3) cell indices of (N, 3) points, clamped to the grid (float32 points are binned in
+    float32: an error ~1e-7 of the coordinates, far inside the dilation's 0.75-cell margin)."""
+    ftype = np.dtype(np.float32 if xyz.dtype == np.float32 else np.float64)
+    rel = (xyz - lo.astype(ftype)) * ftype.type(1.0 / cell)
+    return np.clip(np.floor(rel).astype(np.int64), 0, np.array(shape) - 1)
 
 
 def ray_samples(lo: NDArray[np.float64], cell: float, shape: tuple[int, int, int],
@@ -445,12 +438,11 @@ def crop_for_rays(vertices: NDArray[np.floating], triangles: NDArray[np.integer]
     o = np.atleast_2d(np.asarray(origins, dtype=np.float64)).reshape(-1, 3)
     d = np.atleast_2d(np.asarray(directions, dtype=np.float64)).reshape(-1, 3)
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    empty = np.zeros(shape, dtype=bool)
-    cov = CropCoverage(lo, cell, empty, empty, options.point_radius)
     samples, _ = ray_samples(lo, cell, shape, o, d)  # type: ignore[arg-type]
-    ray_cells = _dilate(_mark(shape, cov.cells_of(samples)), RAY_SLACK)  # type: ignore[arg-type]
+    ray_cells = _dilate(_mark(shape, _cells(lo, cell, shape, samples)),  # type: ignore[arg-type]
+                        RAY_SLACK)
     pts = np.zeros((0, 3)) if points is None else np.atleast_2d(np.asarray(points, np.float64))
-    pt_cells = _mark(shape, cov.cells_of(pts))  # type: ignore[arg-type]
+    pt_cells = _mark(shape, _cells(lo, cell, shape, pts))  # type: ignore[arg-type]
     cov = CropCoverage(lo, cell, ray_cells, pt_cells, options.point_radius)
     hot = _dilate(ray_cells, RAY_DILATION) | _dilate(
         pt_cells, int(np.ceil(options.point_radius / cell)) + RAY_DILATION)

@@ -479,15 +479,6 @@ def _tie_features(
 # --------------------------------------------------------------------------- index
 
 
-def _image_descriptors(
-    model: SparseModel, name: str, image: Image, feats: ImageFeatures | ObservationFeatures,
-    order: NDArray[np.int64] | None = None,
-) -> tuple[NDArray[np.uint8], NDArray[np.int64]]:
-    """(descriptors, point rows) of one image's observations that have a 3D point."""
-    desc, ok, rows = _image_selection(model, name, image, feats, order)
-    return desc[ok].astype(np.uint8, copy=False), rows
-
-
 def _image_selection(
     model: SparseModel, name: str, image: Image, feats: ImageFeatures | ObservationFeatures,
     order: NDArray[np.int64] | None = None,

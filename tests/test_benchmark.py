@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from script_loader import load_script
 
 from sfm_laserscale.io.colmap import read_colmap_model
 from sfm_laserscale.io.meshes import load_mesh
@@ -18,16 +17,9 @@ from sfm_laserscale.synthetic.bench_data import (
     write_heightfield_mesh,
 )
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmark.py"
-
 
 def _bench():  # type: ignore[no-untyped-def]
-    spec = importlib.util.spec_from_file_location("benchmark", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["benchmark"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmark")
 
 
 @pytest.fixture(scope="module")

@@ -3,10 +3,8 @@ version of scripts/bench_detection.py."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 from types import ModuleType
 
@@ -14,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from script_loader import load_script
 
 from sfm_laserscale.cli import main
 from sfm_laserscale.detect_run import parse_camera
@@ -138,13 +137,7 @@ def test_parse_camera() -> None:
 
 
 def _bench() -> ModuleType:
-    path = Path(__file__).resolve().parents[1] / "scripts" / "bench_detection.py"
-    spec = importlib.util.spec_from_file_location("bench_detection", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bench_detection"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script("bench_detection")
 
 
 def test_small_benchmark_meets_targets() -> None:

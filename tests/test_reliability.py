@@ -370,26 +370,16 @@ def test_kill_in_fresh_out_leaves_no_out(campaign: KillCampaign) -> None:
 
 def test_detect_apply_calibrate_do_not_modify_inputs(small_dataset: Any, tmp_path: Path) -> None:
     import cv2
+    from test_calibration import BOARD, CAMERA, POSES, TRUE_RIG  # calibrate's own test scene
 
-    from sfm_laserscale.model import Camera
-    from sfm_laserscale.rig import rig_from_dict
-    from sfm_laserscale.synthetic.calibration_images import (
-        BoardSpec,
-        board_pose,
-        render_calibration_shot,
-    )
+    from sfm_laserscale.synthetic.calibration_images import board_pose, render_calibration_shot
 
-    camera = Camera(1, "PINHOLE", 1280, 960, np.array([1100.0, 1100.0, 640.0, 480.0]))
-    rig = rig_from_dict({"laser": [
-        {"name": "A", "origin": [0.1, 0.02, 0], "direction": [0.01, -0.005, 1], "color": "red"},
-        {"name": "B", "origin": [-0.1, 0.02, 0], "direction": [0.01, -0.005, 1], "color": "red"},
-        {"name": "C", "origin": [0.0, 0.2, 0], "direction": [0.02, -0.01, 1], "color": "red"}]})
-    poses = [(1.0, 10, -20, (0.0, 0.1)), (2.5, -5, -25, (0.05, 0.1)), (4.0, 5, 20, (0.06, 0.1))]
+    poses = [POSES[0], POSES[3], POSES[6]]
     ds = small_dataset
     calib = tmp_path / "calib"
     calib.mkdir()
     for i, pose in enumerate(poses):
-        shot = render_calibration_shot(camera, rig, board_pose(*pose), BoardSpec(square_m=0.06))
+        shot = render_calibration_shot(CAMERA, TRUE_RIG, board_pose(*pose), BOARD)
         cv2.imwrite(str(calib / f"t{i}.png"), shot.image[:, :, ::-1])
     colmap_fx = FIXTURES / "maupertuis_colmap"
     openmvg_fx = FIXTURES / "maupertuis_openmvg"
