@@ -166,12 +166,13 @@ class SparseModel:
                 return im
         return None
 
-    @property
+    @cached_property
     def extent(self) -> float:
         """Diagonal of the 2–98 % percentile box of the 3D points (model units)."""
         if len(self.points_xyz) == 0:
             return 0.0
-        lo, hi = np.percentile(self.points_xyz, [2, 98], axis=0)
+        xyz = np.asarray(self.points_xyz)
+        lo, hi = np.array([np.percentile(xyz[:, j], [2, 98]) for j in range(3)]).T
         return float(np.linalg.norm(hi - lo))
 
 

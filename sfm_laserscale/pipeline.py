@@ -410,6 +410,7 @@ def run_scale(
                                unit="img"):
             t0 = time.perf_counter()
             runs.append(detect_and_register(li, loaded, options, timer))
+            trim_heap()  # the image's pixels and detection planes (~16 bytes per pixel)
             what = runs[-1].reason and f"not registered ({runs[-1].reason})"
             logger.info("laser image %s (%s): %s in %.2f s", li.name, li.path,
                         what or "registered", time.perf_counter() - t0)

@@ -25,8 +25,11 @@ wrong first hit silently.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -250,10 +253,13 @@ class CropOptions:
     size_sample: int = 100_000
     chunk_triangles: int = 1 << 18  # triangles tested at a time (memory: ~25 MB of float64)
     point_radius: float = 0.0  # distances up to this (model units) are exact for given points
+    threads: int = 0  # chunks tested at once (numpy releases the GIL); 0: one per CPU
 
     def __post_init__(self) -> None:
         if self.grid_cells < 1 or self.chunk_triangles < 1 or self.size_sample < 1:
             raise InputError("grid_cells, chunk_triangles and size_sample must be >= 1")
+        if self.threads < 0:
+            raise InputError(f"threads must be >= 0, got {self.threads}")
         if not 0 < self.size_quantile <= 1:
             raise InputError(f"size_quantile must be in (0, 1], got {self.size_quantile}")
         if not self.point_radius >= 0:
@@ -380,15 +386,29 @@ def _triangle_size(vertices: NDArray[np.floating], tris: NDArray[np.integer],
     return float(np.quantile(extent, options.size_quantile))
 
 
+def _in_chunks(fn: Callable[[int, int], NDArray[Any]], n: int, chunk: int,
+               threads: int) -> NDArray[Any]:
+    """``fn(start, stop)`` over consecutive chunks of ``range(n)``, concatenated in order; on
+    ``threads`` threads (0: one per CPU): the numpy work inside releases the GIL, so two
+    cores halve the crop's passes over a large mesh."""
+    bounds = [(s, min(s + chunk, n)) for s in range(0, n, chunk)]
+    if not bounds:
+        return fn(0, 0)
+    workers = min(len(bounds), threads or os.cpu_count() or 1)
+    if workers == 1:
+        return np.concatenate([fn(a, b) for a, b in bounds])
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        return np.concatenate(list(pool.map(lambda ab: fn(*ab), bounds)))
+
+
 def _vertex_cells(vertices: NDArray[np.floating], coverage: CropCoverage,
-                  chunk: int) -> NDArray[np.int32]:
+                  chunk: int, threads: int = 1) -> NDArray[np.int32]:
     """(V,) grid cell of each vertex, its axis indices packed 10 bits each (i << 20 | j << 10 |
     k; the grid has at most 257 cells per axis); a sequential pass, chunk by chunk."""
-    out = np.empty(len(vertices), dtype=np.int32)
-    for s in range(0, len(vertices), chunk):
-        c = coverage.cells_of(vertices[s:s + chunk]).astype(np.int32)
-        out[s:s + chunk] = (c[:, 0] << 20) | (c[:, 1] << 10) | c[:, 2]
-    return out
+    def pack(a: int, b: int) -> NDArray[np.int32]:
+        c = coverage.cells_of(vertices[a:b]).astype(np.int32)
+        return (c[:, 0] << 20) | (c[:, 1] << 10) | c[:, 2]
+    return _in_chunks(pack, len(vertices), chunk, threads).astype(np.int32, copy=False)
 
 
 def _kept_triangles(vertex_cells: NDArray[np.int32], tris: NDArray[np.integer],
@@ -431,7 +451,9 @@ def crop_for_rays(vertices: NDArray[np.floating], triangles: NDArray[np.integer]
     if verts.dtype.kind != "f":
         verts = verts.astype(np.float64)
     tris = np.asarray(triangles)
-    lo, hi = verts.min(axis=0).astype(np.float64), verts.max(axis=0).astype(np.float64)
+    # per column: numpy's axis-0 reduction of an (N, 3) array is ~15x slower (0.4 s at 10M)
+    lo = np.array([verts[:, j].min() for j in range(3)], dtype=np.float64)
+    hi = np.array([verts[:, j].max() for j in range(3)], dtype=np.float64)
     cell = max(float(np.max(hi - lo)) / options.grid_cells, _triangle_size(verts, tris, options),
                1e-12)
     shape = tuple(int(v) for v in np.floor((hi - lo) / cell).astype(np.int64) + 1)
@@ -446,10 +468,9 @@ def crop_for_rays(vertices: NDArray[np.floating], triangles: NDArray[np.integer]
     cov = CropCoverage(lo, cell, ray_cells, pt_cells, options.point_radius)
     hot = _dilate(ray_cells, RAY_DILATION) | _dilate(
         pt_cells, int(np.ceil(options.point_radius / cell)) + RAY_DILATION)
-    vcells = _vertex_cells(verts, cov, options.chunk_triangles)
-    keep = np.concatenate([
-        _kept_triangles(vcells, tris[s:s + options.chunk_triangles], cov.shape, hot)
-        for s in range(0, len(tris), options.chunk_triangles)])
+    vcells = _vertex_cells(verts, cov, options.chunk_triangles, options.threads)
+    keep = _in_chunks(lambda a, b: _kept_triangles(vcells, tris[a:b], cov.shape, hot),
+                      len(tris), options.chunk_triangles, options.threads)
     return _submesh(verts, tris[keep], cov, len(tris))
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -10,7 +11,17 @@ from script_loader import load_script
 
 from sfm_laserscale.io.colmap import read_colmap_model
 from sfm_laserscale.io.meshes import load_mesh
-from sfm_laserscale.registration import _rank_per_point, _reduce_per_point
+from sfm_laserscale.model import ImageFeatures
+from sfm_laserscale.registration import (
+    DescriptorPool,
+    IndexOptions,
+    MatchOptions,
+    _gather,
+    _rank_per_point,
+    _reduce_per_point,
+    index_pool,
+    match_to_model,
+)
 from sfm_laserscale.synthetic.bench_data import (
     pad_model,
     sift_like_descriptors,
@@ -67,15 +78,29 @@ def test_loglog_slope_known_answers() -> None:
     assert bench.slope(x, [5.0, 5.0, 5.0]) == pytest.approx(0.0, abs=1e-12)
 
 
+def _pieces(desc: np.ndarray, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``desc`` split into images whose used rows are scattered among unused ones."""
+    cuts = np.sort(rng.choice(np.arange(1, len(desc)), 6, replace=False))
+    pieces = []
+    for part in np.split(desc, cuts):
+        full = rng.integers(0, 256, (2 * len(part) + 3, 128)).astype(np.uint8)
+        used = np.sort(rng.choice(len(full), len(part), replace=False))
+        full[used] = part
+        pieces.append((full, used))
+    return pieces
+
+
 def test_reduce_per_point_equals_ranking_every_point() -> None:
     rng = np.random.default_rng(3)
     rows = rng.integers(0, 400, 3000)
     desc = rng.integers(0, 256, (3000, 128)).astype(np.uint8)
+    pieces = _pieces(desc, rng)
     for k in (1, 3, 8, 50):
         want = _rank_per_point(desc.astype(np.float32), rows, k)
-        got = _reduce_per_point(desc, rows, k)
+        got = np.flatnonzero(_reduce_per_point(pieces, rows, k))
         np.testing.assert_array_equal(got, want)
         assert np.bincount(rows[got]).max() <= k
+        np.testing.assert_array_equal(_gather(pieces, got), desc[got])
 
 
 def test_sift_like_descriptors_permute_real_ones() -> None:
@@ -98,3 +123,23 @@ def test_padded_model_and_resampled_mesh(tmp_path: Path, small_dataset) -> None:
     mesh, ref = load_mesh(tmp_path / "m.ply"), load_mesh(demo / "mesh.ply")
     assert mesh.num_triangles == n and abs(n - 50000) < 0.02 * 50000
     np.testing.assert_allclose(mesh.bounds, ref.bounds, atol=0.01 * ref.extent)
+
+
+def test_bench_index_recall_is_one_when_every_cell_is_probed() -> None:
+    """scripts/bench_index.py's measure: probing all cells is exact search, so recall 1."""
+    bench = load_script("bench_index")
+    rng = np.random.default_rng(5)
+    centres = rng.integers(0, 200, (3000, 128))
+    desc = np.clip(centres + rng.integers(-4, 5, (3000, 128)), 0, 255).astype(np.uint8)
+    pool = DescriptorPool(desc, np.arange(3000, dtype=np.int64))
+    model = SimpleNamespace(points_xyz=np.zeros((3000, 3)), point3D_ids=np.arange(3000))
+    query = np.clip(centres[:400] + rng.integers(-6, 7, (400, 128)), 0, 255).astype(np.uint8)
+    q = ImageFeatures(np.zeros((400, 2)), query)
+    subset = np.arange(0, 400, 2)
+    exact_index = index_pool(model, pool, IndexOptions(exact=True))  # type: ignore[arg-type]
+    truth = bench._matched(match_to_model(ImageFeatures(q.xy_px[subset], query[subset]),
+                                          exact_index, MatchOptions()))
+    assert len(truth) > 150
+    full = bench.measure(pool, model, [q], 1.0, 10_000, [truth], [subset])
+    assert full["recall"] == 1.0 and full["exact_matches"] == len(truth)
+    assert full["lists"] == 55 and full["probe"] == 10_000  # round(√3000) cells

@@ -393,11 +393,11 @@ class _BinaryElement:
         """(row indices, row dtype) for each distinct row layout (variable layout only)."""
         assert self.list_counts is not None  # internal invariant, not an input check
         counts = self.list_counts
-        if counts.shape[1] == 1:  # 1-D unique is much faster than unique(axis=0)
-            layouts, inverse = np.unique(counts[:, 0], return_inverse=True)
-            layouts = layouts[:, None]
-        else:
-            layouts, inverse = np.unique(counts, axis=0, return_inverse=True)
+        if counts.shape[1] == 1:  # one list per row: a few face sizes, one pass each
+            for n in _distinct_counts(counts[:, 0]):
+                yield np.flatnonzero(counts[:, 0] == n), _row_dtype(self.elem, [int(n)], self.bo)
+            return
+        layouts, inverse = np.unique(counts, axis=0, return_inverse=True)
         inverse = inverse.reshape(-1)
         for i, layout in enumerate(layouts):
             yield np.flatnonzero(inverse == i), _row_dtype(self.elem, layout.tolist(), self.bo)
@@ -606,6 +606,19 @@ def _ascii_body_lines(path: Path, header: _PlyHeader) -> list[str]:
     return [ln for ln in text.split("\n") if ln.strip()]
 
 
+def _distinct_counts(counts: NDArray[Any]) -> NDArray[np.int64]:
+    """Sorted distinct values of an array of small non-negative counts (face sizes).
+
+    ``np.bincount`` when the values are small: ``np.unique`` hashes and took ~1 s for the 20M
+    face sizes of a large mesh; large (corrupt) values go through ``np.unique`` instead of
+    allocating a huge count table.
+    """
+    a = np.asarray(counts).ravel()
+    if a.size and a.dtype.kind in "iu" and int(a.min()) >= 0 and int(a.max()) < (1 << 16):
+        return np.flatnonzero(np.bincount(a.astype(np.int64, copy=False)))
+    return np.unique(a).astype(np.int64)
+
+
 def _ascii_table(rows: list[str], elem: _PlyElement, path: Path,
                  ) -> list[tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]]:
     """Rows as groups of equal token count: (row indices, (k, L) values, (k, P) columns).
@@ -615,7 +628,7 @@ def _ascii_table(rows: list[str], elem: _PlyElement, path: Path,
     tokens = [r.split() for r in rows]
     lengths = np.fromiter((len(t) for t in tokens), dtype=np.int64, count=len(tokens))
     out = []
-    for length in np.unique(lengths):
+    for length in _distinct_counts(lengths):
         idx = np.flatnonzero(lengths == length)
         try:
             values = np.array([tokens[i] for i in idx], dtype=np.float64).reshape(len(idx), -1)
@@ -674,7 +687,7 @@ def _ascii_lists(rows: list[str], elem: _PlyElement, name: str,
     out = []
     for idx, values, cols in _ascii_table(rows, elem, path):
         lengths = values[np.arange(len(idx)), cols[:, j]].astype(np.int64)
-        for n in np.unique(lengths):
+        for n in _distinct_counts(lengths):
             sel = np.flatnonzero(lengths == n)
             take = cols[sel, j][:, None] + 1 + np.arange(n)
             ints = values[sel[:, None], take]
@@ -730,7 +743,7 @@ def _obj_faces(f_lines: list[tuple[int, str, int]], path: Path) -> NDArray[np.in
     lengths = np.fromiter((len(t) for t in tokens), dtype=np.int64, count=len(tokens))
     defined = np.array([n for _, _, n in f_lines], dtype=np.int64)
     groups = []
-    for n in np.unique(lengths):
+    for n in _distinct_counts(lengths):
         rows = np.flatnonzero(lengths == n)
         try:
             idx = np.array([tokens[i] for i in rows], dtype=np.int64).reshape(len(rows), n)
@@ -798,7 +811,7 @@ def _load_obj_fast(data: bytes) -> tuple[NDArray[Any], NDArray[Any]] | None:
         return None
     starts = np.cumsum(sizes) - sizes
     groups = []
-    for n in np.unique(sizes):
+    for n in _distinct_counts(sizes):
         rows = np.flatnonzero(sizes == n)
         groups.append((rows, idx[starts[rows, None] + np.arange(n)] - 1))
     return xyz.reshape(-1, 3), _fan_triangulate(groups, len(sizes), Path("obj"))

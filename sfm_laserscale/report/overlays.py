@@ -10,7 +10,6 @@ so they never hide the image.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -146,22 +145,39 @@ def _draw_beams(
     return lines
 
 
-def _overlap(a: Box, b: Box) -> float:
-    w = min(a[2], b[2]) - max(a[0], b[0])
-    h = min(a[3], b[3]) - max(a[1], b[1])
-    return max(w, 0.0) * max(h, 0.0)
+def _overlap_sum(boxes: NDArray[np.float64], others: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(C,) total overlap area of each of (C, 4) boxes with (M, 4) other boxes."""
+    if len(others) == 0:
+        return np.zeros(len(boxes))
+    w = np.minimum(boxes[:, None, 2], others[None, :, 2]) - np.maximum(boxes[:, None, 0],
+                                                                       others[None, :, 0])
+    h = np.minimum(boxes[:, None, 3], others[None, :, 3]) - np.maximum(boxes[:, None, 1],
+                                                                       others[None, :, 1])
+    return np.sum(np.maximum(w, 0.0) * np.maximum(h, 0.0), axis=1)
 
 
-def _outside(box: Box, width: int, height: int) -> float:
-    inside = _overlap(box, (0.0, 0.0, float(width), float(height)))
-    return (box[2] - box[0]) * (box[3] - box[1]) - inside
+def _box_distances(boxes: NDArray[np.float64], xy: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(C, K) distance from each of (C, 4) boxes to each of (K, 2) points (0 inside)."""
+    dx = np.maximum.reduce([boxes[:, None, 0] - xy[None, :, 0], np.zeros((len(boxes), len(xy))),
+                            xy[None, :, 0] - boxes[:, None, 2]])
+    dy = np.maximum.reduce([boxes[:, None, 1] - xy[None, :, 1], np.zeros((len(boxes), len(xy))),
+                            xy[None, :, 1] - boxes[:, None, 3]])
+    return np.hypot(dx, dy)
 
 
-def _box_distance(box: Box, x: float, y: float) -> float:
-    """Distance from a point to a box (0 inside)."""
-    dx = max(box[0] - x, 0.0, x - box[2])
-    dy = max(box[1] - y, 0.0, y - box[3])
-    return math.hypot(dx, dy)
+_RINGS = np.array([1.25, 2.0, 3.0, 4.5, 6.5, 9.0])
+_ANGLES = np.deg2rad([-30, 30, -150, 150, -90, 90, 0, 180, -60, 60, -120, 120])
+
+
+def _candidates(x: float, y: float, w: float, h: float, radius: float) -> NDArray[np.float64]:
+    """(rings × angles, 4) label boxes around an anchor, ring by ring: each box is attached
+    by its nearest side or corner to a point on the ring."""
+    d = radius * _RINGS + 0.5 * min(w, h) * (_RINGS > 2)
+    c, s = np.cos(_ANGLES)[None, :], np.sin(_ANGLES)[None, :]
+    cx, cy = x + d[:, None] * c, y + d[:, None] * s
+    bx = np.where(c > 0.3, cx, np.where(c < -0.3, cx - w, cx - w / 2))
+    by = np.where(s < -0.3, cy - h, np.where(s > 0.3, cy, cy - h / 2))
+    return np.stack([bx, by, bx + w, by + h], axis=-1).reshape(-1, 4)
 
 
 def place_labels(
@@ -170,51 +186,47 @@ def place_labels(
     radius: float,
     width: int,
     height: int,
-    obstacles: Sequence[Box] = (),
+    obstacles: Sequence[Box] | NDArray[np.float64] = (),
 ) -> list[Box]:
     """Label boxes near their anchors (pixels): greedy, candidates on growing rings; a box
     overlapping another label, a spot circle or the image border costs most, one crossing an
     ``obstacle`` (beam line) less, and farther rings a little."""
+    xy = np.asarray(anchors, dtype=np.float64).reshape(-1, 2)
+    circles = np.column_stack([xy - radius, xy + radius])
+    soft_boxes = np.asarray(obstacles, dtype=np.float64).reshape(-1, 4)
+    frame = np.array([[0.0, 0.0, float(width), float(height)]])
     placed: list[Box] = []
-    circles = [(x - radius, y - radius, x + radius, y + radius) for x, y in anchors]
-    for (x, y), (w, h) in zip(anchors, sizes, strict=True):
-        best: tuple[float, Box] = (math.inf, (x, y, x + w, y + h))
-        for ring in (1.25, 2.0, 3.0, 4.5, 6.5, 9.0):
-            d = radius * ring + 0.5 * min(w, h) * (ring > 2)
-            for ang in np.deg2rad([-30, 30, -150, 150, -90, 90, 0, 180, -60, 60, -120, 120]):
-                c, s = float(np.cos(ang)), float(np.sin(ang))
-                cx, cy = x + d * c, y + d * s
-                # attach the box by its nearest side or corner to the ring point
-                bx = cx if c > 0.3 else (cx - w if c < -0.3 else cx - w / 2)
-                by = cy - h if s < -0.3 else (cy if s > 0.3 else cy - h / 2)
-                box = (bx, by, bx + w, by + h)
-                hard = sum(_overlap(box, o) for o in [*placed, *circles])
-                hard += _outside(box, width, height)
-                # ambiguous: the box is nearer to another spot than to its own
-                own = _box_distance(box, x, y)
-                if any(_box_distance(box, u, v) < own for u, v in anchors if (u, v) != (x, y)):
-                    hard += 0.5 * w * h
-                soft = sum(_overlap(box, o) for o in obstacles)
-                cost = 10.0 * hard + soft + 0.02 * ring * w * h
-                if cost < best[0]:
-                    best = (cost, box)
-            if best[0] < 0.02 * (ring + 1) * w * h:  # nothing hard hit on this ring
+    ring_of = np.repeat(_RINGS, len(_ANGLES))
+    for i, ((x, y), (w, h)) in enumerate(zip(anchors, sizes, strict=True)):
+        boxes = _candidates(x, y, w, h, radius)
+        hard = _overlap_sum(boxes, np.vstack([np.asarray(placed).reshape(-1, 4), circles]))
+        area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+        hard += area - _overlap_sum(boxes, frame)  # the part outside the image
+        # ambiguous: the box is nearer to another spot than to its own
+        dist = _box_distances(boxes, xy)
+        others = np.any(xy != xy[i], axis=1)
+        hard += 0.5 * w * h * np.any(dist[:, others] < dist[:, [i]], axis=1)
+        cost = 10.0 * hard + _overlap_sum(boxes, soft_boxes) + 0.02 * ring_of * w * h
+        for r, ring in enumerate(_RINGS):  # stop at the first ring where nothing hard is hit
+            best = int(np.argmin(cost[: (r + 1) * len(_ANGLES)]))
+            if cost[best] < 0.02 * (ring + 1) * w * h:
                 break
-        placed.append(best[1])
+        placed.append(tuple(float(v) for v in boxes[best]))  # type: ignore[arg-type]
     return placed
 
 
-def _line_obstacles(lines: Sequence[NDArray[np.float64]], half: float) -> list[Box]:
-    """Small boxes along polylines (output pixels), so labels keep off the beam lines."""
-    boxes: list[Box] = []
+def _line_obstacles(lines: Sequence[NDArray[np.float64]], half: float) -> NDArray[np.float64]:
+    """(M, 4) small boxes along polylines (output pixels), so labels keep off the beam lines:
+    each segment sampled at both ends and at most ``half`` apart."""
+    centres = [np.zeros((0, 2))]
     for line in lines:
         seg = np.diff(line, axis=0)
         n = np.maximum(1, np.ceil(np.linalg.norm(seg, axis=1) / half)).astype(int)
-        for p, d, k in zip(line[:-1], seg, n, strict=True):
-            for t in np.linspace(0.0, 1.0, k + 1):
-                x, y = p + t * d
-                boxes.append((x - half, y - half, x + half, y + half))
-    return boxes
+        first = np.repeat(np.arange(len(seg)), n + 1)
+        t = np.concatenate([np.linspace(0.0, 1.0, k + 1) for k in n]) if len(n) else np.zeros(0)
+        centres.append(line[first] + t[:, None] * seg[first])
+    xy = np.concatenate(centres)
+    return np.column_stack([xy - half, xy + half])
 
 
 def _draw_spots(

@@ -78,22 +78,30 @@ def _draw(ax: Axes, points: list[_Point], extra: list[Any], fmt: str) -> None:
     """Markers with error bars; points beyond the kept points' range (rejected outliers) are
     drawn as arrows at the axis edge with their value, so they do not squash the others."""
     lim = _limits(points, extra)
+    inside = [p for p in points if lim is None or lim[0] <= p.y <= lim[1]]
+    # one errorbar call per style, not per point: matplotlib's cost is per artist
+    # (54 calls took a third of the per-laser plot's time)
+    groups: dict[tuple[str, str, bool, float, bool], list[_Point]] = {}
+    for p in inside:
+        groups.setdefault((p.marker, p.color, p.filled, p.size, p.err is not None), []).append(p)
+    for (marker, color, filled, size, has_err), group in groups.items():
+        ax.errorbar(
+            [p.x for p in group],
+            [p.y for p in group],
+            yerr=[float(p.err or 0.0) for p in group] if has_err else None,
+            fmt=marker,
+            ms=size,
+            mfc=color if filled else "white",
+            mec=color,
+            ecolor=color,
+            mew=1.6,
+            elinewidth=1.0,
+            capsize=2,
+            zorder=4 if filled else 3,
+        )
+    drawn = {id(p) for p in inside}
     for p in points:
-        if lim is None or lim[0] <= p.y <= lim[1]:
-            ax.errorbar(
-                p.x,
-                p.y,
-                yerr=p.err,
-                fmt=p.marker,
-                ms=p.size,
-                mfc=p.color if p.filled else "white",
-                mec=p.color,
-                ecolor=p.color,
-                mew=1.6,
-                elinewidth=1.0,
-                capsize=2,
-                zorder=4 if p.filled else 3,
-            )
+        if lim is None or id(p) in drawn:
             continue
         top = p.y > lim[1]
         y = lim[1] if top else lim[0]
