@@ -85,6 +85,7 @@ def main() -> None:
     parser.add_argument("--tmp", type=Path, default=Path(tempfile.gettempdir()))
     args = parser.parse_args()
 
+    args.tmp.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="bench_rescale_", dir=args.tmp))
     try:
         src_dir, out_dir = work / "in", work / "out"

@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 from sfm_laserscale.model import Camera, Spot
+from sfm_laserscale.report import html as html_module
 from sfm_laserscale.report.analysis import annotate
-from sfm_laserscale.report.html import render_html
+from sfm_laserscale.report.html import render_html, template_cache_dir
 from sfm_laserscale.report.overlays import draw_overlay, place_labels
 from sfm_laserscale.report.style import laser_color_bgr
 from sfm_laserscale.report.validate import check_html, parse_report_html
@@ -424,6 +425,41 @@ def test_no_scale_report_renders_reasons(tmp_path: Path) -> None:
     assert html.count("only 12 inliers (&lt; 30)") >= 2
     assert check_html(html, report) == []
     assert report["warnings"][0]["code"] == "no_scale"
+
+
+def _cache_files(cache: Path) -> list[Path]:
+    return sorted((cache / "sfm-laserscale" / "templates").glob("*.cache"))
+
+
+def test_compiled_template_is_kept_between_runs(tmp_path: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    report = make_report(n_images=2, failed=2)
+    first = render_html(report, tmp_path)
+    assert len(_cache_files(tmp_path / "cache")) == 1
+
+    def no_compile(*args: Any, **kwargs: Any) -> Any:
+        raise AssertionError("the template was compiled again")
+
+    monkeypatch.setattr(html_module.Environment, "compile", no_compile)
+    assert render_html(report, tmp_path) == first  # from the cache: nothing compiled
+
+
+def test_damaged_or_unwritable_template_cache_only_costs_the_compile(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    report = make_report(n_images=2, failed=2)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    reference = render_html(report, tmp_path)
+    (cached,) = _cache_files(tmp_path / "cache")
+    data = cached.read_bytes()
+    for damaged in (b"", b"\x00" * 64, data[: len(data) // 2], data[:40] + b"\xff" * 200):
+        cached.write_bytes(damaged)
+        assert render_html(report, tmp_path) == reference
+    blocker = tmp_path / "not_a_folder"
+    blocker.write_text("x")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(blocker))
+    assert template_cache_dir() is None
+    assert render_html(report, tmp_path) == reference
 
 
 def test_pair_only_rig_renders(tmp_path: Path) -> None:
