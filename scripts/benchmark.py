@@ -43,9 +43,8 @@ import numpy as np
 WRAPPED = (
     ("model_read", "sfm_laserscale.pipeline", "load_model"),
     ("mesh_read", "sfm_laserscale.pipeline", "load_mesh"),
-    ("db_read", "sfm_laserscale.pipeline", "load_model_features"),
-    ("index_build", "sfm_laserscale.pipeline", "descriptor_pool"),
-    ("index_build", "sfm_laserscale.pipeline", "index_pool"),
+    # the database is read image by image inside the index build (3 passes), counted there
+    ("index_build", "sfm_laserscale.pipeline", "build_descriptor_index"),
     ("mesh_crop", "sfm_laserscale.pipeline", "crop_mesh"),
     ("raycast_build", "sfm_laserscale.raycast", "MeshRaycaster"),
     ("image_read", "sfm_laserscale.pipeline", "read_rgb"),
@@ -64,7 +63,7 @@ WRAPPED = (
     ("report_html", "sfm_laserscale.report.writer", "render_html"),
 )
 METHODS = (("raycast", "cast"),)  # MeshRaycaster methods
-STAGES = ["model_read", "db_read", "index_build", "mesh_read", "image_read", "detect", "sift",
+STAGES = ["model_read", "index_build", "mesh_read", "image_read", "detect", "sift",
           "match", "pose", "mesh_crop", "raycast_build", "raycast", "estimate", "fuse",
           "mesh_check", "provenance", "report_build", "model_write", "mesh_write", "overlays",
           "report_html", "other"]
@@ -268,14 +267,14 @@ def instrument(rec: dict[str, Any]) -> None:
 def _record_index(rec: dict[str, Any]) -> None:
     """Keep the descriptor index's search method and pool size (exact scan or IVF)."""
     import sfm_laserscale.pipeline as pipeline
-    build = pipeline.index_pool
+    build = pipeline.build_descriptor_index
 
     def recorded(*args: Any, **kwargs: Any) -> Any:
         index = build(*args, **kwargs)
         rec["index"] = {"method": index.method, "descriptors": index.num_descriptors,
                         "ivf_lists": index.ivf_lists, "ivf_probe": index.ivf_probe}
         return index
-    pipeline.index_pool = recorded  # type: ignore[assignment]
+    pipeline.build_descriptor_index = recorded  # type: ignore[assignment]
     crop = pipeline.crop_mesh
 
     def cropped(*args: Any, **kwargs: Any) -> Any:

@@ -20,7 +20,7 @@ from sfm_laserscale.errors import InputError
 from sfm_laserscale.fusion import FusedScale, FusionOptions, fuse
 from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
 from sfm_laserscale.io.meshes import TriangleMesh, load_mesh
-from sfm_laserscale.io.models import load_model, load_model_features
+from sfm_laserscale.io.models import load_model, open_model_features
 from sfm_laserscale.io.spots_csv import read_spots_csv
 from sfm_laserscale.memory import trim_heap
 from sfm_laserscale.methods.pcm_joint import (
@@ -54,9 +54,8 @@ from sfm_laserscale.registration import (
     RegistrationResult,
     SiftOptions,
     TieOptions,
-    descriptor_pool,
+    build_descriptor_index,
     extract_sift,
-    index_pool,
     register_image,
 )
 from sfm_laserscale.rig import Rig, load_rig
@@ -120,7 +119,8 @@ class LoadedInputs:
     rig: Rig
     laser_images: tuple[LaserImage, ...]
     manual_spots: dict[str, list[Spot]]
-    index: DescriptorIndex
+    index: DescriptorIndex | None  # None once every laser image is registered (peak memory)
+    descriptors_indexed: int  # the index's size, for the report
 
 
 @dataclass(frozen=True)
@@ -184,26 +184,21 @@ def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
     manual: dict[str, list[Spot]] = {}
     if inputs.spots is not None:
         manual = read_spots_csv(inputs.spots, [li.name for li in laser_images], rig.names)
-    features = load_model_features(
-        model, inputs.model, inputs.database, inputs.images, inputs.features,
-        replace(options.tie, progress=options.progress)
-    )
-    try:
-        pool = descriptor_pool(model, features, options.index)
-    except InputError as exc:  # name the descriptor source as well as the image
-        source = inputs.database or inputs.features or inputs.images
-        if source is None or exc.path is None:
-            raise
-        raise InputError(f"image {exc.path}: {exc.problem}", source) from exc
-    # peak memory: the features, the pool and the index are never all held at once, and the
-    # mesh is read once the index is built
-    del features
-    trim_heap()
-    index = index_pool(model, pool, options.index)
-    del pool
+    # peak memory: a database's features are read one image at a time by the index build,
+    # never all held beside the index, and the mesh is read once the index is built
+    with open_model_features(model, inputs.model, inputs.database, inputs.images,
+                             inputs.features, replace(options.tie, progress=options.progress)
+                             ) as features:
+        try:
+            index = build_descriptor_index(model, features, options.index)
+        except InputError as exc:  # name the descriptor source as well as the image
+            source = inputs.database or inputs.features or inputs.images
+            if source is None or exc.path is None:
+                raise
+            raise InputError(f"image {exc.path}: {exc.problem}", source) from exc
     trim_heap()
     mesh = load_mesh(inputs.mesh)
-    return LoadedInputs(model, mesh, rig, laser_images, manual, index)
+    return LoadedInputs(model, mesh, rig, laser_images, manual, index, index.num_descriptors)
 
 
 def _spots_for(
@@ -239,6 +234,8 @@ def detect_and_register(image: LaserImage, loaded: LoadedInputs, options: ScaleO
         return _image_run(image, f"cannot read image: {exc.problem}")
     with timer("detect"):
         spots, det, spot_reasons = _spots_for(image.name, rgb, camera, loaded, options)
+    if loaded.index is None:
+        raise ValueError("the descriptor index was released: register before run_scale drops it")
     with timer("register"):
         reg = register_image(extract_sift(rgb, options.sift), camera, loaded.index,
                              options.registration)
@@ -414,6 +411,8 @@ def run_scale(
             what = runs[-1].reason and f"not registered ({runs[-1].reason})"
             logger.info("laser image %s (%s): %s in %.2f s", li.name, li.path,
                         what or "registered", time.perf_counter() - t0)
+        loaded = replace(loaded, index=None)  # registration is over: the index's memory goes
+        trim_heap()
         with timer("raycast"):
             crop = crop_mesh(runs, loaded, options)
             loaded = replace(loaded, mesh=None)  # the crop is all the rest needs

@@ -47,6 +47,7 @@ refinement is single-threaded: same input and seeds give bit-identical poses (te
 from __future__ import annotations
 
 import logging
+import struct
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -60,6 +61,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from sfm_laserscale.errors import InputError
+from sfm_laserscale.memory import trim_heap
 from sfm_laserscale.model import (
     INVALID_POINT3D_ID,
     Camera,
@@ -215,13 +217,14 @@ class DescriptorIndex:
     """Descriptors of the model's 3D points, searchable by nearest neighbour."""
 
     descriptors: NDArray[np.uint8]  # (P, 128) for exact search; (0, 128) when the IVF holds them
-    point_rows: NDArray[np.int64]  # (P,) row of each descriptor's point in points_xyz
+    point_rows: NDArray[np.int32]  # (P,) row of each descriptor's point in points_xyz
     points_xyz: F64  # (M, 3) the model's points, model units
     point3D_ids: NDArray[np.uint64]  # noqa: N815 (COLMAP's name) (M,)
     method: str  # "ivf" | "exact"
     ivf_lists: int = 0  # k-means cells of the IVF (0 for exact search)
     ivf_probe: int = 0  # cells searched per query (0 for exact search)
     _searcher: Any = field(default=None, repr=False, compare=False)
+    _storage: Any = field(default=None, repr=False, compare=False)  # memory of the IVF's lists
 
     @property
     def num_descriptors(self) -> int:
@@ -393,7 +396,10 @@ def extract_sift(
     # pycolmap already returns COLMAP's convention (centre of the top-left pixel at
     # (0.5, 0.5)); tests/test_registration.py checks it on blobs at known positions.
     logger.debug("SIFT: %d keypoints on a %s image", len(kp), img.shape)
-    return ImageFeatures(xy_px=kp[:, :2].copy(), descriptors=desc)
+    out = ImageFeatures(xy_px=kp[:, :2].copy(), descriptors=desc)
+    del img, kp, desc
+    trim_heap()  # SIFT's working memory (0.1-3 GB with the image size) goes back to the OS
+    return out
 
 
 # --------------------------------------------------------------------------- features
@@ -538,28 +544,37 @@ def _check_aligned(name: str, image: Image, feats: ImageFeatures) -> None:
             )
 
 
-def _reduce_per_point(
-    pieces: Sequence[tuple[NDArray[Any], NDArray[np.int64]]], rows: NDArray[np.int64],
-    max_per_point: int,
-) -> NDArray[np.bool_]:
-    """Mask keeping, per point, the ``max_per_point`` descriptors nearest its mean (rows and
-    descriptors as in ``_gather``).
+# The pool is built in three passes over the features, so that a lazy mapping (the COLMAP
+# database read one image at a time, ``io.colmap_database.open_database_features``) never
+# holds more than one image's features beside the index (2M descriptors: 0.27 GB, where the
+# features, a gathered pool and FAISS's own lists used to be held two at a time):
+#   1. selection: each image's descriptors with a 3D point (alignment checked), and a random
+#      training sample for the IVF's k-means (``_select``);
+#   2. the descriptors of points seen more than ``max_descriptors_per_point`` times (ranked to
+#      keep that many) and every candidate's IVF cell (``_rank_and_cells``);
+#   3. every kept descriptor copied once, straight to its final place: the exact pool, or its
+#      cell's list inside one buffer that FAISS reads without copying (``_IvfLayout``).
 
-    Only the points with more descriptors than that are ranked (usually a small share of a
-    large model's points: at 1M points ranking them all cost ~60 % of the index build time
-    and several GB of float copies); the result is the same as ranking every point.
-    """
-    over = (np.bincount(rows) > max_per_point)[rows]
-    keep = ~over
-    if over.any():
-        sel = np.flatnonzero(over)
-        desc = _gather(pieces, sel).astype(np.float32)
-        keep[sel[_rank_per_point(desc, rows[sel], max_per_point)]] = True
-    return keep
+
+@dataclass(frozen=True)
+class _Selection:
+    """Pass 1: the candidate descriptors of each image (those of a 3D point).
+
+    int32 rows (half the memory of int64 at 2M descriptors): models of < 2³¹ points."""
+
+    names: tuple[str, ...]
+    used: tuple[NDArray[np.int32], ...]  # per image: rows of its descriptors that are candidates
+    sizes: tuple[int, ...]  # per image: its number of descriptor rows (checked on later passes)
+    point_rows: NDArray[np.int32]  # (N,) point row of every candidate, images concatenated
+
+    @property
+    def starts(self) -> NDArray[np.int64]:
+        """(images + 1,) offset of each image's candidates in ``point_rows``."""
+        return np.r_[0, np.cumsum([len(u) for u in self.used])].astype(np.int64)
 
 
 def _rank_per_point(
-    desc: NDArray[np.float32], rows: NDArray[np.int64], max_per_point: int
+    desc: NDArray[np.float32], rows: NDArray[np.integer[Any]], max_per_point: int
 ) -> NDArray[np.int64]:
     """Indices keeping, per point, the ``max_per_point`` descriptors nearest its mean."""
     order = np.argsort(rows, kind="stable")
@@ -583,116 +598,177 @@ class DescriptorPool:
     point_rows: NDArray[np.int64]
 
 
-def build_descriptor_index(
-    model: SparseModel,
-    features: Mapping[str, ImageFeatures] | Mapping[str, ObservationFeatures],
-    options: IndexOptions | RegistrationOptions,
-) -> DescriptorIndex:
-    """Index the descriptors of every model observation that has a 3D point.
+def _ivf_lists(pool_size: int, options: IndexOptions) -> int:
+    """Number of k-means cells of the IVF over a pool of this size."""
+    nlist = options.ivf_lists or int(np.clip(round(np.sqrt(pool_size)), 16, 4096))
+    return max(1, min(nlist, pool_size))
 
-    ``ImageFeatures`` follow the COLMAP database convention (keypoint i = observation i
-    of the image in the model, checked); ``ObservationFeatures`` come from
-    ``features_from_images``. Features of images absent from the model are ignored.
-    (:func:`descriptor_pool` then :func:`index_pool`: a caller short of memory drops the
-    features between the two.)
+
+def _train_probability(model: SparseModel, names: Sequence[str], options: IndexOptions) -> float:
+    """Probability of drawing each candidate into the k-means sample (pass 1).
+
+    Drawn from an upper bound of the candidates (the observations with a point id), 1.5×
+    the largest sample the IVF may need, so that at least that many are drawn (then cut down).
     """
-    return index_pool(model, descriptor_pool(model, features, options), options)
+    by_name = {im.name: im for im in model.images.values()}
+    upper = sum(int(np.count_nonzero(np.asarray(by_name[n].point3D_ids, dtype=np.uint64)
+                                     != INVALID_POINT3D_ID)) for n in names if n in by_name)
+    if upper == 0 or _use_exact(upper, options):
+        return 0.0
+    wanted = _ivf_lists(upper, options) * max(1, options.train_per_list)
+    return min(1.0, 1.5 * wanted / upper)
 
 
-def descriptor_pool(
-    model: SparseModel,
-    features: Mapping[str, ImageFeatures] | Mapping[str, ObservationFeatures],
-    options: IndexOptions | RegistrationOptions,
-) -> DescriptorPool:
-    """The descriptors of the observations with a 3D point, at most
-    ``max_descriptors_per_point`` per point (those nearest the point's mean descriptor)."""
-    if isinstance(options, RegistrationOptions):
-        options = options.index
-    picked: list[tuple[NDArray[Any], NDArray[np.int64]]] = []  # (descriptors, used rows)
-    rows_of_points = []
+def _select(
+    model: SparseModel, features: Mapping[str, ImageFeatures] | Mapping[str, ObservationFeatures],
+    train_p: float, rng: np.random.Generator,
+) -> tuple[_Selection, NDArray[np.uint8]]:
+    """Pass 1 over the features: candidates of each model image (checked) and a random
+    sample of them for the k-means, (T, 128), each candidate drawn with ``train_p``."""
     order = np.argsort(np.asarray(model.point3D_ids, dtype=np.uint64), kind="stable")
     by_name = {im.name: im for im in model.images.values()}  # image_by_name is a linear scan
-    for name, feats in features.items():
+    names, used, sizes, rows, train = [], [], [], [], []
+    for name in features:
         image = by_name.get(name)
         if image is None:
             logger.debug("%s: not in the model, its features are not indexed", name)
             continue
-        desc, ok, r = _image_selection(model, name, image, feats, order)
-        picked.append((desc, np.flatnonzero(ok)))
-        rows_of_points.append(r)
-    point_rows = np.concatenate(rows_of_points) if picked else np.zeros(0, np.int64)
+        desc, ok, r = _image_selection(model, name, image, features[name], order)
+        u = np.flatnonzero(ok)
+        names.append(name)
+        used.append(u.astype(np.int32))
+        sizes.append(len(desc))
+        rows.append(r.astype(np.int32))
+        if train_p > 0:
+            train.append(_rows_of(desc, u[rng.random(len(u)) < train_p]))
+    point_rows = np.concatenate(rows) if rows else np.zeros(0, np.int32)
     if len(point_rows) == 0:
         raise InputError("no descriptor of any 3D point of the model: features and model disagree")
-    keep = _reduce_per_point(picked, point_rows, max(1, options.max_descriptors_per_point))
-    desc_u8 = _gather(picked, np.flatnonzero(keep))  # one copy, straight into the pool
-    return DescriptorPool(desc_u8, point_rows[keep])
+    sample = np.concatenate(train) if train else np.zeros((0, DESCRIPTOR_DIM), np.uint8)
+    return _Selection(tuple(names), tuple(used), tuple(sizes), point_rows), sample
 
 
-def _gather(pieces: Sequence[tuple[NDArray[Any], NDArray[np.int64]]],
-            which: NDArray[np.int64]) -> NDArray[np.uint8]:
-    """(M, 128) uint8 rows ``which`` (sorted) of the concatenation of every piece's
-    ``descriptors[used]``, written in place without the concatenation."""
-    out = np.empty((len(which), DESCRIPTOR_DIM), dtype=np.uint8)
-    out_rows = _as_rows(out)
-    starts = np.r_[0, np.cumsum([len(used) for _, used in pieces])].astype(np.int64)
-    bounds = np.searchsorted(which, starts).tolist()
-    for (desc, used), lo, hi, first in zip(pieces, bounds[:-1], bounds[1:], starts.tolist(),
-                                           strict=False):
+def _pool_selection(pool: DescriptorPool, options: IndexOptions,
+                    rng: np.random.Generator) -> tuple[_Selection, NDArray[np.uint8]]:
+    """A materialised pool as a one-image selection, and a k-means sample of it."""
+    desc = np.asarray(pool.descriptors)
+    if desc.ndim != 2 or desc.shape[1] != DESCRIPTOR_DIM or len(desc) != len(pool.point_rows):
+        raise InputError(f"pool descriptors must be (P, 128) with P point rows, got {desc.shape}")
+    n = len(desc)
+    wanted = 0 if n == 0 or _use_exact(n, options) else \
+        _ivf_lists(n, options) * max(1, options.train_per_list)
+    pick = np.sort(rng.choice(n, size=min(n, wanted), replace=False))
+    sel = _Selection(("pool",), (np.arange(n, dtype=np.int32),), (n,),
+                     np.asarray(pool.point_rows, dtype=np.int32))
+    return sel, _rows_of(desc, pick)
+
+
+def _image_descriptors(descriptors_of: Any, sel: _Selection, i: int) -> NDArray[np.uint8]:
+    """Image ``i``'s descriptors on a later pass; they must not have changed since pass 1."""
+    desc = np.asarray(descriptors_of(sel.names[i]))
+    if desc.ndim != 2 or len(desc) != sel.sizes[i]:
+        raise InputError(f"{desc.shape[0]} descriptors, {sel.sizes[i]} when first read: "
+                         "the features changed while the index was built", path=sel.names[i])
+    return desc
+
+
+def _rank_and_cells(
+    sel: _Selection, descriptors_of: Any, max_per_point: int, quantizer: Any | None,
+    nlist: int = 0,
+) -> tuple[NDArray[np.bool_], NDArray[np.integer[Any]] | None]:
+    """Pass 2: (mask of the candidates kept, IVF cell of every candidate or None).
+
+    Only the points with more candidates than ``max_per_point`` are ranked (a small share
+    of a large model's points: ranking them all cost ~60 % of the index build time at 1M
+    points); the result is the same as ranking every point.
+    """
+    over = (np.bincount(sel.point_rows) > max_per_point)[sel.point_rows]
+    keep = ~over
+    if quantizer is None and not over.any():
+        return keep, None
+    over_idx = np.flatnonzero(over)
+    over_desc = np.empty((len(over_idx), DESCRIPTOR_DIM), dtype=np.float32)
+    cells = None if quantizer is None else np.empty(len(sel.point_rows), dtype=_cell_type(nlist))
+    starts, k = sel.starts, 0
+    for i in range(len(sel.names)):
+        lo, hi = int(starts[i]), int(starts[i + 1])
         if hi == lo:
             continue
-        local = used[which[lo:hi] - first]
-        rows = _as_rows(desc)
-        if rows is None or out_rows is None:
-            out[lo:hi] = np.asarray(desc)[local]
-        else:
-            np.take(rows, local, out=out_rows[lo:hi])
-    return out
+        cand = _rows_of(_image_descriptors(descriptors_of, sel, i), sel.used[i])
+        if cells is not None:
+            cells[lo:hi] = _assign_cells(quantizer, cand)
+        o = over[lo:hi]
+        n_over = int(np.count_nonzero(o))
+        if n_over:
+            over_desc[k:k + n_over] = cand[o]
+            k += n_over
+    if len(over_idx):
+        keep[over_idx[_rank_per_point(over_desc, sel.point_rows[over_idx], max_per_point)]] = True
+    return keep, cells
 
 
-def index_pool(model: SparseModel, pool: DescriptorPool,
-               options: IndexOptions | RegistrationOptions) -> DescriptorIndex:
-    """The searchable index of a descriptor pool: exact search for small pools, else IVF."""
-    if isinstance(options, RegistrationOptions):
-        options = options.index
-    desc_u8, point_rows = pool.descriptors, pool.point_rows
-    searcher = None if _use_exact(len(desc_u8), options) else _build_ivf(desc_u8, options)
-    method = "exact" if searcher is None else "ivf"
-    logger.info("descriptor index: %d descriptors of %d points (%s%s)", len(desc_u8),
-                np.count_nonzero(np.bincount(point_rows)), method,
-                "" if searcher is None else f", {searcher.nlist} cells, probe {searcher.nprobe}")
-    return DescriptorIndex(
-        descriptors=desc_u8 if searcher is None else np.zeros((0, DESCRIPTOR_DIM), np.uint8),
-        point_rows=point_rows,
-        points_xyz=np.asarray(model.points_xyz, dtype=np.float64),
-        point3D_ids=np.asarray(model.point3D_ids, dtype=np.uint64),
-        method=method,
-        ivf_lists=0 if searcher is None else int(searcher.nlist),
-        ivf_probe=0 if searcher is None else int(searcher.nprobe),
-        _searcher=searcher,
-    )
+def _cell_type(nlist: int) -> type[np.integer[Any]]:
+    """int16 for < 32768 cells: numpy's stable sort of int16 is a radix sort (10× faster)."""
+    return np.int16 if nlist <= np.iinfo(np.int16).max else np.int32
 
 
-def _use_exact(num_descriptors: int, options: IndexOptions) -> bool:
-    """Exact brute force or the IVF for a pool of this size."""
-    if options.exact is not None:
-        return bool(options.exact)
-    return num_descriptors <= options.exact_max_pool
+def _assign_cells(quantizer: Any, desc: NDArray[np.uint8]) -> NDArray[np.int64]:
+    """(N,) nearest cell of each (N, 128) uint8 descriptor, in 16 MB float32 chunks."""
+    chunk = 1 << 15
+    return np.concatenate([
+        quantizer.search(np.ascontiguousarray(desc[s:s + chunk], dtype=np.float32), 1)[1][:, 0]
+        for s in range(0, len(desc), chunk)]).astype(np.int64)
 
 
-def _build_ivf(desc: NDArray[np.uint8], options: IndexOptions) -> Any:
-    """FAISS IVF over the (P, 128) uint8 pool, lists stored as uint8 (``QT_8bit_direct``).
+def _scatter(sel: _Selection, descriptors_of: Any, keep: NDArray[np.bool_],
+             words: NDArray[np.uint64], dest_word: NDArray[np.integer[Any]]) -> None:
+    """Pass 3: copy the j-th kept candidate to ``words[dest_word[j]:][:16]``."""
+    cols = np.arange(DESCRIPTOR_DIM // 8, dtype=np.int64)
+    starts, done = sel.starts, 0  # done: kept candidates of the images before
+    for i in range(len(sel.names)):
+        lo, hi = int(starts[i]), int(starts[i + 1])
+        k = keep[lo:hi]
+        n = int(np.count_nonzero(k))
+        if n == 0:
+            continue
+        rows = _rows_of(_image_descriptors(descriptors_of, sel, i), sel.used[i][k])
+        dest = dest_word[done:done + n]
+        words[dest[:, None].astype(np.int64) + cols] = rows.view(np.uint64).reshape(n, -1)
+        done += n
 
-    Memory ~136 bytes per descriptor (code + id): 0.27 GB at 2M descriptors, where FLANN's
-    float32 pool and 4 KD-trees took 2.9 GB. The lists are filled one call each with their
-    final content (``_fill_lists``): FAISS's own ``add`` grows every list entry by entry, and
-    the doubling vectors and freed buffers left ~1 GB more resident at 2M descriptors.
+
+def _word_view(a: NDArray[np.uint8]) -> NDArray[np.uint64]:
+    """A C-contiguous, 8-byte aligned uint8 array as uint64 words (same memory)."""
+    return a.reshape(-1).view(np.uint64)
+
+
+def _gather_kept(sel: _Selection, descriptors_of: Any,
+                 keep: NDArray[np.bool_]) -> NDArray[np.uint8]:
+    """(P, 128) the kept candidates, in candidate order (pass 3 of the exact pool)."""
+    pool = np.empty((int(np.count_nonzero(keep)), DESCRIPTOR_DIM), dtype=np.uint8)
+    step = DESCRIPTOR_DIM // 8
+    _scatter(sel, descriptors_of, keep, _word_view(pool),
+             step * np.arange(len(pool), dtype=_word_type(len(pool))))
+    return pool
+
+
+def _training_sample(sel: _Selection, drawn: NDArray[np.uint8], descriptors_of: Any, n: int,
+                     rng: np.random.Generator) -> NDArray[np.uint8]:
+    """(n, 128) random candidates for the k-means: pass 1's sample, cut down to ``n``.
+
+    When pass 1 drew fewer (features covering far fewer observations than the model holds,
+    e.g. re-extracted SIFT), ``n`` candidates are drawn again, one more pass.
     """
-    nlist = options.ivf_lists or int(np.clip(round(np.sqrt(len(desc))), 16, 4096))
-    nlist = max(1, min(nlist, len(desc)))
-    rng = np.random.default_rng(options.seed)
-    n_train = min(len(desc), nlist * max(1, options.train_per_list))
-    sample = np.sort(rng.choice(len(desc), size=n_train, replace=False))
-    train = np.ascontiguousarray(desc[sample], dtype=np.float32)
+    if len(drawn) >= n:
+        return drawn[np.sort(rng.choice(len(drawn), size=n, replace=False))]
+    pick = np.zeros(len(sel.point_rows), dtype=bool)
+    pick[rng.choice(len(pick), size=n, replace=False)] = True
+    return _gather_kept(sel, descriptors_of, pick)
+
+
+def _trained_ivf(train_u8: NDArray[np.uint8], nlist: int, options: IndexOptions) -> Any:
+    """An empty FAISS IVF (uint8 codes, ``QT_8bit_direct``) with its k-means cells trained."""
+    train = np.ascontiguousarray(train_u8, dtype=np.float32)
     quantizer = _coarse_quantizer(train, options.coarse_dims)
     ivf = faiss.IndexIVFScalarQuantizer(quantizer, DESCRIPTOR_DIM, nlist,
                                         faiss.ScalarQuantizer.QT_8bit_direct, faiss.METRIC_L2,
@@ -701,8 +777,6 @@ def _build_ivf(desc: NDArray[np.uint8], options: IndexOptions) -> Any:
     ivf.cp.min_points_per_centroid = 1  # small pools: no console warning from FAISS
     ivf.cp.max_points_per_centroid = max(1, options.train_per_list)
     ivf.train(train)  # k-means centroids in 128-d, assigned through the quantizer
-    _fill_lists(ivf, quantizer, desc)
-    ivf.nprobe = min(nlist, options.ivf_probe)
     return ivf
 
 
@@ -717,25 +791,220 @@ def _coarse_quantizer(train: NDArray[np.float32], dims: int) -> Any:
     return faiss.IndexPreTransform(pca, faiss.IndexFlatL2(dims))
 
 
-def _fill_lists(ivf: Any, quantizer: Any, desc: NDArray[np.uint8]) -> None:
-    """Put every descriptor in its nearest cell's list; ids are the pool rows. A
-    ``QT_8bit_direct`` code is the uint8 descriptor itself, so no encoding is needed."""
-    chunk = 1 << 15  # 32768 × 512 bytes = 16 MB of float32 at a time
-    cell = np.concatenate([
-        quantizer.search(np.ascontiguousarray(desc[s:s + chunk], dtype=np.float32), 1)[1][:, 0]
-        for s in range(0, len(desc), chunk)])
-    # cells < 4096 fit in int16, for which numpy's stable sort is a radix sort (10x faster)
-    cell = cell.astype(np.int16 if ivf.nlist <= np.iinfo(np.int16).max else np.int64)
-    order = np.argsort(cell, kind="stable")
-    starts = np.searchsorted(cell[order], np.arange(ivf.nlist + 1))
-    for lst in range(ivf.nlist):
-        rows = order[starts[lst]:starts[lst + 1]]
-        if len(rows) == 0:
-            continue
-        ids = np.ascontiguousarray(rows, dtype=np.int64)
-        codes = _rows_of(desc, rows)
-        ivf.invlists.add_entries(lst, len(rows), faiss.swig_ptr(ids), faiss.swig_ptr(codes))
-    ivf.ntotal = len(desc)
+@dataclass(frozen=True)
+class _IvfLayout:
+    """An IVF serialised into one buffer: FAISS's bytes for the trained, empty index with
+    its lists section replaced by the lists' sizes, then each list's codes (P_l × 128 bytes)
+    and ids (P_l int64), list after list (FAISS's ``ilar``/``full`` format).
+
+    ``faiss.ZeroCopyIOReader`` reads it back with every list a view into this buffer: the
+    descriptors are written once, where FAISS searches them, and never copied.
+    """
+
+    buffer: NDArray[np.uint8]
+    body_at: int  # byte offset of list 0 (8-byte aligned in memory)
+
+    @property
+    def words(self) -> NDArray[np.uint64]:
+        """The lists as uint64 words: list l's codes start at word 17 × (its first position)."""
+        return self.buffer[self.body_at:].view(np.uint64)
+
+
+def _ivf_layout(ivf: Any, sizes: NDArray[np.int64]) -> _IvfLayout | None:
+    """The buffer of ``ivf`` (trained, empty) with lists of these sizes; None when this FAISS
+    does not serialise an empty index the way this code expects (then lists are filled)."""
+    head = faiss.serialize_index(ivf)
+    lists = b"ilar" + struct.pack("<QQ", ivf.nlist, ivf.code_size)
+    empty = lists + b"sprs" + struct.pack("<Q", 0)
+    if ivf.code_size != DESCRIPTOR_DIM or bytes(head[-len(empty):]) != empty:
+        return None
+    lists += b"full" + struct.pack("<Q", ivf.nlist) + sizes.astype("<u8").tobytes()
+    keep = len(head) - len(empty)
+    body_at = keep + len(lists)
+    total = body_at + (DESCRIPTOR_DIM + 8) * int(sizes.sum())
+    raw = np.empty(total + 8, dtype=np.uint8)
+    shift = -(raw.ctypes.data + body_at) % 8
+    buf = raw[shift:shift + total]
+    buf[:keep] = head[:keep]
+    buf[keep:body_at] = np.frombuffer(lists, dtype=np.uint8)
+    return _IvfLayout(buf, body_at)
+
+
+def _read_ivf(layout: _IvfLayout) -> tuple[Any, Any]:
+    """(index, the memory its lists live in): zero copy when this FAISS can, else a copy."""
+    reader_type = getattr(faiss, "ZeroCopyIOReader", None)
+    if reader_type is None:  # older FAISS: the lists are copied, the buffer can go
+        return faiss.deserialize_index(layout.buffer), None
+    index = faiss.read_index(reader_type(faiss.swig_ptr(layout.buffer), layout.buffer.size))
+    return index, (None if _lists_owned(index) else layout.buffer)
+
+
+def _lists_owned(index: Any) -> bool:
+    """True only when the index's first non-empty list is known to own its codes."""
+    inv: Any = faiss.downcast_InvertedLists(index.invlists)
+    for lst in range(inv.nlist):
+        if inv.list_size(lst):
+            codes = inv.codes.at(lst)
+            return bool(getattr(codes, "is_owned", False))
+    return False
+
+
+def _fill_ivf(sel: _Selection, descriptors_of: Any, keep: NDArray[np.bool_],
+              cells: NDArray[np.integer[Any]], ivf: Any) -> tuple[Any, Any, NDArray[np.int32]]:
+    """Pass 3 for the IVF: (searchable index, memory its lists live in, point row of each
+    pool position). Pool position = place in cell order; FAISS ids are pool positions.
+
+    Peak ~ lists + 40 bytes per descriptor: the arrays over all descriptors are int16 cells,
+    the cell order and the destinations (int64), the result's point rows.
+    """
+    cells_kept = cells[keep]
+    order = np.argsort(cells_kept, kind="stable")  # pool position -> kept index
+    point_rows = sel.point_rows[keep][order]
+    sizes = np.bincount(cells_kept, minlength=ivf.nlist).astype(np.int64)
+    first = np.r_[0, np.cumsum(sizes)]  # (nlist + 1,) first pool position of each list
+    trim_heap()  # what passes 1-2 freed, before the lists' memory is taken
+    layout = _ivf_layout(ivf, sizes)
+    # list l's codes start at word 17 × first[l] (the codes and ids of the lists before it),
+    # so the code of position p (in list l) is at word first[l] + 16 p; a plain cell-sorted
+    # pool (no layout) has it at word 16 p
+    dest = _in_chunks(order, lambda o, p: (first[cells_kept[o]] if layout is not None else 0)
+                      + (DESCRIPTOR_DIM // 8) * p)
+    del order
+    trim_heap()
+    if layout is None:  # fill FAISS's own lists from a cell-sorted pool (twice the memory)
+        logger.debug("FAISS serialises IVFs differently from what this code knows: lists copied")
+        pool = np.empty((len(dest), DESCRIPTOR_DIM), dtype=np.uint8)
+        _scatter(sel, descriptors_of, keep, _word_view(pool), dest)
+        for lst in np.flatnonzero(sizes).tolist():
+            a, b = int(first[lst]), int(first[lst + 1])
+            ids = np.arange(a, b, dtype=np.int64)
+            ivf.invlists.add_entries(lst, b - a, faiss.swig_ptr(ids), faiss.swig_ptr(pool[a:b]))
+        ivf.ntotal = len(dest)
+        return ivf, None, point_rows
+    _scatter(sel, descriptors_of, keep, layout.words, dest)
+    del dest
+    _write_ids(layout.words, np.sort(cells_kept, kind="stable"), first)
+    index, storage = _read_ivf(layout)
+    index.ntotal = len(point_rows)
+    return index, storage, point_rows
+
+
+def _word_type(num_descriptors: int) -> type[np.integer[Any]]:
+    """int32 word offsets while they fit (17 words per descriptor: < 126M descriptors)."""
+    return np.int32 if 17 * num_descriptors < np.iinfo(np.int32).max else np.int64
+
+
+def _in_chunks(order: NDArray[np.int64],
+               fn: Any, chunk: int = 1 << 20) -> NDArray[np.integer[Any]]:
+    """``out[order[p]] = fn(order[p], p)`` for every position p, 1M at a time (no
+    full-length temporaries)."""
+    out = np.empty(len(order), dtype=_word_type(len(order)))
+    for a in range(0, len(order), chunk):
+        o = order[a:a + chunk]
+        out[o] = fn(o, np.arange(a, a + len(o), dtype=np.int64))
+    return out
+
+
+def _write_ids(words: NDArray[np.uint64], sorted_cells: NDArray[np.integer[Any]],
+               first: NDArray[np.int64], chunk: int = 1 << 20) -> None:
+    """FAISS id of each pool position = the position, after its list's codes: position p of
+    list l at word 17 × first[l] + 16 × size_l + (p − first[l]) = 16 × first[l + 1] + p."""
+    step = DESCRIPTOR_DIM // 8
+    for a in range(0, len(sorted_cells), chunk):
+        p = np.arange(a, min(a + chunk, len(sorted_cells)), dtype=np.int64)
+        words[step * first[sorted_cells[a:a + chunk].astype(np.int64) + 1] + p] = p.view(np.uint64)
+
+
+def build_descriptor_index(
+    model: SparseModel,
+    features: Mapping[str, ImageFeatures] | Mapping[str, ObservationFeatures],
+    options: IndexOptions | RegistrationOptions,
+) -> DescriptorIndex:
+    """Index the descriptors of every model observation that has a 3D point.
+
+    ``ImageFeatures`` follow the COLMAP database convention (keypoint i = observation i
+    of the image in the model, checked); ``ObservationFeatures`` come from
+    ``features_from_images``. Features of images absent from the model are ignored. The
+    mapping is read three times, one image at a time: it may read from disk on access.
+    """
+    if isinstance(options, RegistrationOptions):
+        options = options.index
+    p = _train_probability(model, list(features), options)
+    return _index(model, lambda rng: _select(model, features, p, rng),
+                  lambda name: features[name].descriptors, options)
+
+
+def descriptor_pool(
+    model: SparseModel,
+    features: Mapping[str, ImageFeatures] | Mapping[str, ObservationFeatures],
+    options: IndexOptions | RegistrationOptions,
+) -> DescriptorPool:
+    """The descriptors of the observations with a 3D point, at most
+    ``max_descriptors_per_point`` per point (those nearest the point's mean descriptor)."""
+    if isinstance(options, RegistrationOptions):
+        options = options.index
+    sel, _ = _select(model, features, 0.0, np.random.default_rng(options.seed))
+    keep, _ = _rank_and_cells(sel, lambda name: features[name].descriptors,
+                              max(1, options.max_descriptors_per_point), None)
+    return DescriptorPool(_gather_kept(sel, lambda name: features[name].descriptors, keep),
+                          sel.point_rows[keep].astype(np.int64))
+
+
+def index_pool(model: SparseModel, pool: DescriptorPool,
+               options: IndexOptions | RegistrationOptions) -> DescriptorIndex:
+    """The searchable index of a descriptor pool: exact search for small pools, else IVF."""
+    if isinstance(options, RegistrationOptions):
+        options = options.index
+    return _index(model, lambda rng: _pool_selection(pool, options, rng),
+                  lambda _: pool.descriptors, options)
+
+
+def _index(model: SparseModel, select: Any, descriptors_of: Any,
+           options: IndexOptions) -> DescriptorIndex:
+    """The exact pool or the IVF of the candidates: ``select(rng)`` (pass 1) returns them and
+    a k-means sample; ``descriptors_of(name)`` gives an image's descriptors (passes 2-3)."""
+    rng = np.random.default_rng(options.seed)
+    sel, drawn = select(rng)
+    per_point = max(1, options.max_descriptors_per_point)
+    size = int(np.minimum(np.bincount(sel.point_rows), per_point).sum())  # pool size
+    searcher = storage = None
+    if _use_exact(size, options):
+        keep, _ = _rank_and_cells(sel, descriptors_of, per_point, None)
+        pool = _gather_kept(sel, descriptors_of, keep)
+        point_rows = sel.point_rows[keep]
+    else:
+        nlist = _ivf_lists(size, options)
+        n_train = min(size, nlist * max(1, options.train_per_list))
+        train = _training_sample(sel, drawn, descriptors_of, n_train, rng)
+        del drawn
+        ivf = _trained_ivf(train, nlist, options)
+        del train
+        keep, cells = _rank_and_cells(sel, descriptors_of, per_point, ivf.quantizer, nlist)
+        assert cells is not None  # a quantizer was given
+        searcher, storage, point_rows = _fill_ivf(sel, descriptors_of, keep, cells, ivf)
+        searcher.nprobe = min(nlist, options.ivf_probe)
+        pool = np.zeros((0, DESCRIPTOR_DIM), np.uint8)
+    trim_heap()  # the passes' temporaries go back to the OS
+    method = "exact" if searcher is None else "ivf"
+    logger.info("descriptor index: %d descriptors of %d points (%s%s)", len(point_rows),
+                np.count_nonzero(np.bincount(point_rows)), method,
+                "" if searcher is None else f", {searcher.nlist} cells, probe {searcher.nprobe}")
+    return DescriptorIndex(
+        descriptors=pool, point_rows=point_rows,
+        points_xyz=np.asarray(model.points_xyz, dtype=np.float64),
+        point3D_ids=np.asarray(model.point3D_ids, dtype=np.uint64),
+        method=method,
+        ivf_lists=0 if searcher is None else int(searcher.nlist),
+        ivf_probe=0 if searcher is None else int(searcher.nprobe),
+        _searcher=searcher, _storage=storage,
+    )
+
+
+def _use_exact(num_descriptors: int, options: IndexOptions) -> bool:
+    """Exact brute force or the IVF for a pool of this size."""
+    if options.exact is not None:
+        return bool(options.exact)
+    return num_descriptors <= options.exact_max_pool
 
 
 def _exact_knn(pool: NDArray[np.float32], query: NDArray[np.float32], k: int) -> tuple[

@@ -16,9 +16,10 @@ from sfm_laserscale.registration import (
     DescriptorPool,
     IndexOptions,
     MatchOptions,
-    _gather,
+    _gather_kept,
+    _rank_and_cells,
     _rank_per_point,
-    _reduce_per_point,
+    _Selection,
     index_pool,
     match_to_model,
 )
@@ -91,16 +92,28 @@ def _pieces(desc: np.ndarray, rng: np.random.Generator) -> list[tuple[np.ndarray
 
 
 def test_reduce_per_point_equals_ranking_every_point() -> None:
+    """Ranking only the over-observed points, image by image, keeps what ranking every point
+    of the concatenated descriptors keeps; the kept ones are gathered in order."""
     rng = np.random.default_rng(3)
     rows = rng.integers(0, 400, 3000)
     desc = rng.integers(0, 256, (3000, 128)).astype(np.uint8)
     pieces = _pieces(desc, rng)
+    sel = _Selection(tuple(str(i) for i in range(len(pieces))), tuple(u for _, u in pieces),
+                     tuple(len(d) for d, _ in pieces), rows.astype(np.int32))
+    reads: list[str] = []
+
+    def descriptors_of(name: str) -> np.ndarray:
+        reads.append(name)
+        return pieces[int(name)][0]
+
     for k in (1, 3, 8, 50):
         want = _rank_per_point(desc.astype(np.float32), rows, k)
-        got = np.flatnonzero(_reduce_per_point(pieces, rows, k))
+        keep, cells = _rank_and_cells(sel, descriptors_of, k, None)
+        got = np.flatnonzero(keep)
         np.testing.assert_array_equal(got, want)
-        assert np.bincount(rows[got]).max() <= k
-        np.testing.assert_array_equal(_gather(pieces, got), desc[got])
+        assert cells is None and np.bincount(rows[got]).max() <= k
+        np.testing.assert_array_equal(_gather_kept(sel, descriptors_of, keep), desc[got])
+    assert reads[:len(pieces)] == list(sel.names)  # one image at a time, in order
 
 
 def test_sift_like_descriptors_permute_real_ones() -> None:

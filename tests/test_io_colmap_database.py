@@ -13,7 +13,7 @@ import pytest
 
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.colmap import read_colmap_model
-from sfm_laserscale.io.colmap_database import read_database_features
+from sfm_laserscale.io.colmap_database import open_database_features, read_database_features
 
 FIXTURES = Path(__file__).resolve().parents[1].parent / "shared" / "fixtures"
 MAUPERTUIS = FIXTURES / "maupertuis_colmap"
@@ -40,6 +40,36 @@ def _raises_naming(path_part: str, *args, **kwargs) -> InputError:  # type: igno
         read_database_features(*args, **kwargs)
     assert path_part in str(info.value) and "\n" not in str(info.value), str(info.value)
     return info.value
+
+
+def test_lazy_features_read_one_image_per_access_and_index_alike() -> None:
+    """The mapping the pipeline indexes from reads an image's rows on each access (nothing
+    kept between accesses) and gives the same features, hence the same descriptor index,
+    as reading the whole database."""
+    from sfm_laserscale.io.colmap import read_colmap_model
+    from sfm_laserscale.registration import IndexOptions, build_descriptor_index
+
+    whole = read_database_features(DB)
+    before = _folder_state(MAUPERTUIS)
+    with open_database_features(DB) as lazy:
+        assert list(lazy) == list(whole) and len(lazy) == len(whole)
+        first, again = lazy["02.jpg"], lazy["02.jpg"]
+        assert first.descriptors is not again.descriptors  # read again, not cached
+        np.testing.assert_array_equal(first.descriptors, whole["02.jpg"].descriptors)
+        np.testing.assert_array_equal(first.xy_px, whole["02.jpg"].xy_px)
+        with pytest.raises(KeyError):
+            lazy["not-there.jpg"]
+        model = read_colmap_model(MAUPERTUIS / "reconstruction")
+        for opts in (IndexOptions(), IndexOptions(exact=False, ivf_lists=40)):
+            a = build_descriptor_index(model, lazy, opts)
+            b = build_descriptor_index(model, whole, opts)
+            np.testing.assert_array_equal(a.point_rows, b.point_rows)
+            np.testing.assert_array_equal(a.descriptors, b.descriptors)
+            assert (a.method, a.ivf_lists) == (b.method, b.ivf_lists)
+    assert _folder_state(MAUPERTUIS) == before
+    with pytest.raises(InputError, match="not in the database"):
+        with open_database_features(DB, ["nope.jpg"]):
+            pass
 
 
 def test_fixture_features_and_untouched_fixture() -> None:

@@ -425,34 +425,53 @@ def test_query_from_another_resolution_is_refused(
         register_image(feats["03.jpg"], small, index, RegistrationOptions())
 
 
-@pytest.mark.parametrize("coarse_dims", [0, 16])
-def test_ivf_index_lists_equal_faiss_own_add_and_find_near_duplicates(coarse_dims: int) -> None:
-    """The IVF's lists, filled once per list with the uint8 codes, search exactly like an
-    index filled by FAISS's own ``add`` (cells assigned in 128-d or in a PCA projection); a
-    perturbed copy of a pool descriptor finds it, at its exact L2 distance."""
+@pytest.mark.parametrize(("coarse_dims", "route"),
+                         [(0, "zero copy"), (16, "zero copy"), (16, "copied"), (16, "filled")])
+def test_ivf_index_lists_equal_faiss_own_add_and_find_near_duplicates(
+        coarse_dims: int, route: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The IVF's lists, written once into a buffer FAISS reads without copying (or, with an
+    older FAISS, copied; or filled list by list when FAISS's format is not the one known),
+    search exactly like an index filled by FAISS's own ``add`` with the same cells (assigned
+    in 128-d or in a PCA projection); a perturbed copy of a pool descriptor finds it, at its
+    exact L2 distance."""
     import faiss
 
-    from sfm_laserscale.registration import _build_ivf, _coarse_quantizer
+    from sfm_laserscale import registration as reg
 
+    if route == "copied":
+        monkeypatch.delattr(faiss, "ZeroCopyIOReader")
+    if route == "filled":
+        monkeypatch.setattr(reg, "_ivf_layout", lambda ivf, sizes: None)
     rng = np.random.default_rng(7)
     pool = rng.integers(0, 120, (30000, 128)).astype(np.uint8)
-    opts = IndexOptions(coarse_dims=coarse_dims)
-    ivf = _build_ivf(pool, opts)
-    assert ivf.ntotal == len(pool) and ivf.nlist == round(np.sqrt(len(pool)))
+    model = _pool_model(len(pool))
+    index = reg.index_pool(model, reg.DescriptorPool(pool, np.arange(len(pool))),  # type: ignore[arg-type]
+                           IndexOptions(coarse_dims=coarse_dims))
+    ivf = index._searcher
+    assert index.method == "ivf" and ivf.ntotal == len(pool)
+    assert ivf.nlist == round(np.sqrt(len(pool))) and ivf.nprobe == 6
+    assert (index._storage is not None) == (route == "zero copy")  # lists are views into it
+    if route == "zero copy":
+        assert not reg._lists_owned(ivf)
+        assert index._storage.nbytes < len(pool) * 136 + 100_000  # codes + ids, no copy
+    np.testing.assert_array_equal(np.sort(index.point_rows), np.arange(len(pool)))
     query = (pool[:300].astype(np.int16) + rng.integers(-3, 4, (300, 128))).clip(0, 255)
     q = query.astype(np.float32)
     d2, idx = ivf.search(q, 2)
-    np.testing.assert_array_equal(idx[:, 0], np.arange(300))
+    np.testing.assert_array_equal(index.point_rows[idx[:, 0]], np.arange(300))
     np.testing.assert_array_equal(d2[:, 0], ((q - pool[:300]) ** 2).sum(axis=1))  # exact L2²
-    pick = np.sort(np.random.default_rng(0).choice(len(pool), ivf.nlist * 40, replace=False))
-    train = pool[pick].astype(np.float32)
-    ref = faiss.IndexIVFScalarQuantizer(_coarse_quantizer(train, coarse_dims), 128, ivf.nlist,
+    ref = faiss.IndexIVFScalarQuantizer(faiss.clone_index(ivf.quantizer), 128, ivf.nlist,
                                         faiss.ScalarQuantizer.QT_8bit_direct, faiss.METRIC_L2,
                                         False)
-    ref.cp.seed, ref.cp.min_points_per_centroid, ref.cp.max_points_per_centroid = 0, 1, 40
-    ref.train(train)
+    ref.train(pool[:1000].astype(np.float32))  # the cells are given: only the codec trains
     ref.add(pool.astype(np.float32))
     ref.nprobe = ivf.nprobe
     d2_ref, idx_ref = ref.search(q, 2)
-    np.testing.assert_array_equal(idx, idx_ref)
+    np.testing.assert_array_equal(index.point_rows[idx], idx_ref)
     np.testing.assert_array_equal(d2, d2_ref)
+
+
+def _pool_model(n: int) -> object:
+    """The parts of a model that ``index_pool`` reads, for n points."""
+    from types import SimpleNamespace
+    return SimpleNamespace(points_xyz=np.zeros((n, 3)), point3D_ids=np.arange(n, dtype=np.uint64))

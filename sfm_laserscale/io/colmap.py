@@ -21,6 +21,7 @@ from __future__ import annotations
 import array
 import logging
 import math
+import os
 import re
 import shutil
 import struct
@@ -189,7 +190,7 @@ def _scale_f64_triplets(out: bytearray, starts: I64, scale: float) -> None:
 class _Cursor:
     """Bounds-checked reads over a binary model file; every failure is an InputError."""
 
-    def __init__(self, data: bytes, path: Path) -> None:
+    def __init__(self, data: bytes | bytearray, path: Path) -> None:
         self.data, self.path, self.pos = data, path, 0
 
     def fail(self, what: str) -> InputError:
@@ -275,7 +276,7 @@ def _parse_cameras_bin(data: bytes, path: Path) -> dict[int, Camera]:
     return cameras
 
 
-def _parse_images_bin(data: bytes, path: Path) -> list[_ImageRecord]:
+def _parse_images_bin(data: bytes | bytearray, path: Path) -> list[_ImageRecord]:
     cur = _Cursor(data, path)
     n = cur.count("images", _IMAGE_HEAD.size + 1 + 8)
     records = []
@@ -292,7 +293,7 @@ def _parse_images_bin(data: bytes, path: Path) -> list[_ImageRecord]:
     return records
 
 
-def _points3d_offsets(data: bytes, path: Path) -> I64:
+def _points3d_offsets(data: bytes | bytearray, path: Path) -> I64:
     """Byte offset of every points3D.bin record: one tight pass over the track lengths.
 
     Records have variable length, so each offset depends on the previous one; this single
@@ -316,7 +317,7 @@ def _points3d_offsets(data: bytes, path: Path) -> I64:
     return np.frombuffer(offsets, dtype=np.int64).copy()
 
 
-def _parse_frames_bin(data: bytes, path: Path) -> list[int]:
+def _parse_frames_bin(data: bytes | bytearray, path: Path) -> list[int]:
     """Byte offsets of every frame's rig_from_world translation (COLMAP 4.x frames.bin)."""
     cur = _Cursor(data, path)
     n = cur.count("frames", 4 + 4 + 56 + 4)
@@ -331,7 +332,7 @@ def _parse_frames_bin(data: bytes, path: Path) -> list[int]:
     return t_offsets
 
 
-def _parse_rigs_bin(data: bytes, path: Path) -> list[int]:
+def _parse_rigs_bin(data: bytes | bytearray, path: Path) -> list[int]:
     """Byte offsets of every sensor_from_rig translation (COLMAP 4.x rigs.bin)."""
     cur = _Cursor(data, path)
     n = cur.count("rigs", 8)
@@ -591,30 +592,44 @@ def _check_scale(scale: float) -> float:
     return s
 
 
-def _scale_images_bin(data: bytes, path: Path, s: float) -> bytes:
-    out = bytearray(data)
+def _mutable(data: bytes | bytearray) -> bytearray:
+    """``data`` itself when it is a bytearray (rescaled in place), else a mutable copy."""
+    return data if isinstance(data, bytearray) else bytearray(data)
+
+
+def _read_mutable(path: Path) -> bytearray:
+    """A file's bytes in one mutable buffer (``read_bytes`` then ``bytearray`` holds two)."""
+    with path.open("rb") as fh:
+        data = bytearray(os.fstat(fh.fileno()).st_size)
+        n = fh.readinto(data)
+    del data[n:]
+    return data
+
+
+def _scale_images_bin(data: bytes | bytearray, path: Path, s: float) -> bytearray:
+    out = _mutable(data)
     starts = np.array([r.start + _IMAGE_TVEC_AT for r in _parse_images_bin(data, path)],
                       dtype=np.int64)
     _scale_f64_triplets(out, starts, s)
-    return bytes(out)
+    return out
 
 
-def _scale_points3d_bin(data: bytes, path: Path, s: float) -> bytes:
-    out = bytearray(data)
+def _scale_points3d_bin(data: bytes | bytearray, path: Path, s: float) -> bytearray:
+    out = _mutable(data)
     _scale_f64_triplets(out, _points3d_offsets(data, path) + 8, s)
-    return bytes(out)
+    return out
 
 
-def _scale_frames_bin(data: bytes, path: Path, s: float) -> bytes:
-    out = bytearray(data)
+def _scale_frames_bin(data: bytes | bytearray, path: Path, s: float) -> bytearray:
+    out = _mutable(data)
     _scale_f64_triplets(out, np.array(_parse_frames_bin(data, path), dtype=np.int64), s)
-    return bytes(out)
+    return out
 
 
-def _scale_rigs_bin(data: bytes, path: Path, s: float) -> bytes:
-    out = bytearray(data)
+def _scale_rigs_bin(data: bytes | bytearray, path: Path, s: float) -> bytearray:
+    out = _mutable(data)
     _scale_f64_triplets(out, np.array(_parse_rigs_bin(data, path), dtype=np.int64), s)
-    return bytes(out)
+    return out
 
 
 def _fmt(v: float) -> bytes:
@@ -688,7 +703,7 @@ def _scale_rigs_txt(data: bytes, path: Path, s: float) -> bytes:
     return b"".join(out)
 
 
-_RESCALERS: dict[str, Callable[[bytes, Path, float], bytes]] = {
+_RESCALERS: dict[str, Callable[..., bytes | bytearray]] = {  # (data, path, scale)
     "images.bin": _scale_images_bin,
     "points3D.bin": _scale_points3d_bin,
     "frames.bin": _scale_frames_bin,
@@ -723,7 +738,9 @@ def write_scaled_colmap_model(src_dir: str | Path, dst_dir: str | Path, scale: f
         if rescale is None:
             shutil.copyfile(f, target)
         else:
-            target.write_bytes(rescale(f.read_bytes(), f, s))
+            data = _read_mutable(f) if f.suffix == ".bin" else f.read_bytes()
+            target.write_bytes(rescale(data, f, s))  # binary files: rescaled in place
+            del data
         written.append(target)
     logger.info("wrote model rescaled by %.9g to %s (%d files)", s, dst, len(written))
     return written

@@ -20,7 +20,7 @@ import logging
 import shutil
 import sqlite3
 import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from contextlib import closing, contextmanager
 from pathlib import Path
 
@@ -123,8 +123,9 @@ def _descriptors(row: tuple[int, int, int, bytes | None] | None, name: str,
     return np.frombuffer(blob, dtype=np.uint8).reshape(rows, 128).copy()
 
 
-def _read_features(con: sqlite3.Connection, path: Path,
-                   image_names: Iterable[str] | None) -> dict[str, ImageFeatures]:
+def _catalogue(con: sqlite3.Connection, path: Path,
+               image_names: Iterable[str] | None) -> tuple[list[str], dict[str, int], str]:
+    """(image names to read, name -> image_id, descriptor type column) of a database."""
     tables = _tables(con)
     missing = [t for t in _REQUIRED_TABLES if t not in tables]
     if missing:
@@ -143,30 +144,65 @@ def _read_features(con: sqlite3.Connection, path: Path,
             shown = ", ".join(repr(n) for n in unknown[:5])
             more = f" and {len(unknown) - 5} more" if len(unknown) > 5 else ""
             raise InputError(f"image(s) not in the database: {shown}{more}", path)
-    features = {}
-    for name in names:
-        image_id = ids[name]
+    return names, ids, type_col
+
+
+class DatabaseFeatures(Mapping[str, ImageFeatures]):
+    """Image name -> keypoints and SIFT descriptors, read from an open database on each
+    access: one image's features in memory at a time (``open_database_features``)."""
+
+    def __init__(self, con: sqlite3.Connection, path: Path,
+                 image_names: Iterable[str] | None) -> None:
+        self._con, self._path = con, path
+        self._names, self._ids, self._type_col = _catalogue(con, path, image_names)
+        self._known = set(self._names)
+
+    def __getitem__(self, name: str) -> ImageFeatures:
+        if name not in self._known:
+            raise KeyError(name)
+        try:
+            return self._read(name, self._ids[name])
+        except sqlite3.DatabaseError as e:
+            raise InputError(f"cannot read COLMAP database: {e}", self._path) from e
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+    def _read(self, name: str, image_id: int) -> ImageFeatures:
+        con, path = self._con, self._path
         kp = _keypoints(con.execute("SELECT rows, cols, data FROM keypoints WHERE image_id=?",
                                     (image_id,)).fetchone(), name, path)
         desc = _descriptors(con.execute(
-            f"SELECT {type_col}, rows, cols, data FROM descriptors WHERE image_id=?",
+            f"SELECT {self._type_col}, rows, cols, data FROM descriptors WHERE image_id=?",
             (image_id,)).fetchone(), name, path)
         if len(kp) != len(desc):
             raise InputError(f"image {name!r} has {len(kp)} keypoints but {len(desc)} "
                              "descriptors", path)
-        features[name] = ImageFeatures(kp, desc)
-    return features
+        return ImageFeatures(kp, desc)
+
+
+@contextmanager
+def open_database_features(db_path: str | Path, image_names: Iterable[str] | None = None
+                           ) -> Iterator[DatabaseFeatures]:
+    """The features of the named images (or all with features) as a lazy mapping, valid
+    inside the ``with`` block; the database (and its folder) is never written."""
+    path = Path(db_path)
+    try:
+        with open_database_readonly(path) as con:
+            features = DatabaseFeatures(con, path, image_names)
+            yield features
+    except sqlite3.DatabaseError as e:
+        raise InputError(f"cannot read COLMAP database: {e}", path) from e
 
 
 def read_database_features(db_path: str | Path,
                            image_names: Iterable[str] | None = None) -> dict[str, ImageFeatures]:
     """Image name -> keypoints (x, y) and SIFT descriptors, for the named images or all with
     features; the database (and its folder) is never written."""
-    path = Path(db_path)
-    try:
-        with open_database_readonly(path) as con:
-            features = _read_features(con, path, image_names)
-    except sqlite3.DatabaseError as e:
-        raise InputError(f"cannot read COLMAP database: {e}", path) from e
-    logger.info("read features of %d images from %s", len(features), path)
+    with open_database_features(db_path, image_names) as lazy:
+        features = dict(lazy.items())
+    logger.info("read features of %d images from %s", len(features), db_path)
     return features

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,7 @@ from numpy.typing import NDArray
 
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.colmap import read_colmap_model
-from sfm_laserscale.io.colmap_database import read_database_features
+from sfm_laserscale.io.colmap_database import open_database_features, read_database_features
 from sfm_laserscale.io.images import IMAGE_SUFFIXES, read_rgb
 from sfm_laserscale.io.openmvg import (
     find_openmvg_regions_dir,
@@ -99,6 +100,27 @@ def load_model_features(
         "the model's descriptors are needed: give --database (COLMAP) or --images "
         "(the model's source images, SIFT is re-extracted)"
     )
+
+
+@contextmanager
+def open_model_features(
+    model: SparseModel,
+    model_path: Path,
+    database: Path | None,
+    images_dir: Path | None,
+    features_dir: Path | None,
+    tie: TieOptions,
+) -> Iterator[Mapping[str, ImageFeatures] | Mapping[str, ObservationFeatures]]:
+    """``load_model_features`` as a mapping valid inside the ``with`` block: a COLMAP
+    database is read one image at a time, on access, so its features are never all held
+    in memory (the descriptor index reads them image by image)."""
+    if model.source_format == "openmvg" or database is None:
+        yield load_model_features(model, model_path, database, images_dir, features_dir, tie)
+        return
+    with open_database_features(database, [im.name for im in model.images.values()]) as feats:
+        logger.info("descriptors of %d model images read from %s, one image at a time",
+                    len(feats), database)
+        yield feats
 
 
 def _openmvg_features(

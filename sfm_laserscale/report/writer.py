@@ -207,7 +207,7 @@ def build_report(
             "format": loaded.model.source_format,
             "images": len(loaded.model.images),
             "points": int(len(loaded.model.points_xyz)),
-            "descriptors_indexed": int(loaded.index.num_descriptors),
+            "descriptors_indexed": int(loaded.descriptors_indexed),
         },
         "options": {"method": options.method, "seed": options.seed},
     }
