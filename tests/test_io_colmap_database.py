@@ -67,9 +67,9 @@ def test_lazy_features_read_one_image_per_access_and_index_alike() -> None:
             np.testing.assert_array_equal(a.descriptors, b.descriptors)
             assert (a.method, a.ivf_lists) == (b.method, b.ivf_lists)
     assert _folder_state(MAUPERTUIS) == before
-    with pytest.raises(InputError, match="not in the database"):
-        with open_database_features(DB, ["nope.jpg"]):
-            pass
+    with pytest.raises(InputError, match="not in the database"), \
+            open_database_features(DB, ["nope.jpg"]):
+        pass
 
 
 def test_fixture_features_and_untouched_fixture() -> None:
