@@ -44,6 +44,7 @@ from scipy import ndimage
 from scipy.optimize import least_squares, linear_sum_assignment
 
 from sfm_laserscale.errors import InputError
+from sfm_laserscale.memory import trim_heap
 from sfm_laserscale.model import Camera, Spot
 from sfm_laserscale.rig import Laser, Rig
 
@@ -1133,6 +1134,18 @@ def _search_region(camera: Camera, rig: Rig, options: DetectionOptions) -> _Sear
     return _SearchRegion((x0, y0, x1, y1), polylines, near > 0, band, max_radius)
 
 
+def _measure_candidates(image_rgb: NDArray[np.uint8], rig: Rig, region: _SearchRegion,
+                        options: DetectionOptions) -> list[_Measure]:
+    """Every candidate spot of every colour the rig needs, within the search region."""
+    measures: list[_Measure] = []
+    x0, y0, x1, y1 = region.roi
+    if x1 > x0 and y1 > y0:
+        channels = _channels(image_rgb, region.roi, options.input_gamma)
+        for color in _colours_needed(rig):
+            measures += _candidates_for_colour(channels, color, options, region)
+    return measures
+
+
 def detect_spots(
     image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
     options: DetectionOptions = DetectionOptions(),  # noqa: B008 (frozen dataclass)
@@ -1140,12 +1153,8 @@ def detect_spots(
     """Detect laser spots in one image and assign them to the rig's lasers."""
     _check_image(image_rgb, camera)
     region = _search_region(camera, rig, options)
-    measures: list[_Measure] = []
-    x0, y0, x1, y1 = region.roi
-    if x1 > x0 and y1 > y0:
-        channels = _channels(image_rgb, region.roi, options.input_gamma)
-        for color in _colours_needed(rig):
-            measures += _candidates_for_colour(channels, color, options, region)
+    measures = _measure_candidates(image_rgb, rig, region, options)
+    trim_heap()  # the detection planes (~16 bytes per pixel) go back to the OS
     valid = [m for m in measures if m.rejected is None]
     chosen, missing, dist = _assign_calibrated(rig, region, valid, options)
     chosen_u, missing_u = _assign_uncalibrated(rig, valid, set(chosen.values()), options)
