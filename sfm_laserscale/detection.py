@@ -53,7 +53,6 @@ logger = logging.getLogger(__name__)
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 #: an image as three contiguous (H, W) float32 planes R, G, B in [0, 1]
-Channels = tuple[F32, F32, F32]
 CHANNELS: dict[str, int] = {"red": 0, "green": 1, "blue": 2}
 UNCALIBRATED_REASON = "uncalibrated laser: give its spots with --spots"
 _INADMISSIBLE = 1e6
@@ -269,11 +268,24 @@ def distance_to_polyline(xy: F64, polyline: F64) -> F64:
 # ----------------------------------------------------------------------------- responses
 
 
+@dataclass(frozen=True)
+class Channels:
+    """The search region of an RGB image, kept as uint8 (3 bytes per pixel, where three
+    float32 planes took 12), and the decoding of its values."""
+
+    rgb: NDArray[np.uint8]  # (H, W, 3) C-contiguous crop
+    lut: F32  # (256,) pixel value -> linear intensity in [0, 1], increasing
+
+
 def _laser_and_other(channels: Channels, color: str) -> tuple[F32, F32]:
-    """The laser's channel and the per-pixel max of the two others."""
+    """The laser's channel and the per-pixel max of the two others, as float32 planes.
+
+    The max is taken on the uint8 values, then decoded: the same numbers, since the
+    decoding increases."""
     c = CHANNELS[color]
-    o1, o2 = [channels[i] for i in range(3) if i != c]
-    return channels[c], np.maximum(o1, o2)
+    o1, o2 = [i for i in range(3) if i != c]
+    rgb, lut = channels.rgb, channels.lut
+    return lut[rgb[..., c]], lut[np.maximum(rgb[..., o1], rgb[..., o2])]
 
 
 def _fill_clipped(diff: F32, clipped: NDArray[np.bool_], max_area: float) -> None:
@@ -757,13 +769,12 @@ def _check_image(image_rgb: NDArray[np.uint8], camera: Camera) -> None:
 def _channels(
     image_rgb: NDArray[np.uint8], roi: tuple[int, int, int, int], gamma: float = 1.0
 ) -> Channels:
-    """The (x0, y0, x1, y1) crop of an RGB uint8 image as three float32 planes in [0, 1],
-    decoded as ``(v / 255) ** gamma`` (1 = the image is linear)."""
+    """The (x0, y0, x1, y1) crop of an RGB uint8 image, values decoded as
+    ``(v / 255) ** gamma`` (1 = the image is linear) when a colour's planes are made."""
     x0, y0, x1, y1 = roi
     crop = np.ascontiguousarray(image_rgb[y0:y1, x0:x1])
     lut = ((np.arange(256, dtype=np.float64) / 255.0) ** gamma).astype(np.float32)
-    r, g, b = (lut[ch] for ch in cv2.split(crop))
-    return r, g, b
+    return Channels(crop, lut)
 
 
 @dataclass(frozen=True)

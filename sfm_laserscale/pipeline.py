@@ -114,7 +114,7 @@ class ScaleOptions:
 class LoadedInputs:
     """Everything read from disk before the per-image work."""
 
-    model: SparseModel
+    model: SparseModel  # without its images' 2D observations (the index holds what is needed)
     mesh: TriangleMesh | None  # None once cropped (run_scale releases it: peak memory)
     rig: Rig
     laser_images: tuple[LaserImage, ...]
@@ -196,6 +196,9 @@ def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
             if source is None or exc.path is None:
                 raise
             raise InputError(f"image {exc.path}: {exc.problem}", source) from exc
+    # the index holds what registration needs from the 2D observations; the rest of the
+    # run uses cameras, poses and points only
+    model = model.without_observations()
     trim_heap()
     mesh = load_mesh(inputs.mesh)
     return LoadedInputs(model, mesh, rig, laser_images, manual, index, index.num_descriptors)

@@ -255,6 +255,24 @@ def test_model_without_images(fixture_model: SparseModel) -> None:
         model_without_images(fixture_model, ["nope.jpg"])
 
 
+def test_model_without_observations(fixture_model: SparseModel) -> None:
+    """Cameras, poses, points and the extent stay; only the 2D observations go."""
+    light = fixture_model.without_observations()
+    assert light.cameras == fixture_model.cameras
+    assert light.source_format == fixture_model.source_format
+    assert light.extent == fixture_model.extent
+    np.testing.assert_array_equal(light.points_xyz, fixture_model.points_xyz)
+    np.testing.assert_array_equal(light.point3D_ids, fixture_model.point3D_ids)
+    assert light.images.keys() == fixture_model.images.keys()
+    for k, im in light.images.items():
+        orig = fixture_model.images[k]
+        assert (im.name, im.camera_id, im.image_id) == (orig.name, orig.camera_id, orig.image_id)
+        np.testing.assert_array_equal(im.cam_from_world.R, orig.cam_from_world.R)
+        np.testing.assert_array_equal(im.cam_from_world.t, orig.cam_from_world.t)
+        assert im.xy_px.shape == (0, 2) and im.point3D_ids.shape == (0,)
+        assert len(orig.xy_px) > 0  # the source model keeps its observations
+
+
 # ----------------------------------------------------------------------------- rescale
 
 
