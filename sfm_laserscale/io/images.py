@@ -100,7 +100,8 @@ def read_rgb(path: Path) -> NDArray[np.uint8]:
     bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if bgr is None:
         raise InputError("not a readable image", path)
-    return np.ascontiguousarray(bgr[:, :, ::-1])
+    # in place: one image in memory, not two (36 MB less at 4000 × 3000)
+    return np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB, dst=bgr), dtype=np.uint8)
 
 
 def read_gray(path: Path) -> NDArray[np.uint8]:
