@@ -44,7 +44,8 @@ WRAPPED = (
     ("model_read", "sfm_laserscale.pipeline", "load_model"),
     ("mesh_read", "sfm_laserscale.pipeline", "load_mesh"),
     # the database is read image by image inside the index build (3 passes), counted there
-    ("index_build", "sfm_laserscale.pipeline", "build_descriptor_index"),
+    ("index_build", "sfm_laserscale.pipeline", "select_index_candidates"),
+    ("index_build", "sfm_laserscale.pipeline", "build_index"),
     ("mesh_crop", "sfm_laserscale.pipeline", "crop_mesh"),
     ("raycast_build", "sfm_laserscale.raycast", "MeshRaycaster"),
     ("image_read", "sfm_laserscale.pipeline", "read_rgb"),
@@ -267,14 +268,14 @@ def instrument(rec: dict[str, Any]) -> None:
 def _record_index(rec: dict[str, Any]) -> None:
     """Keep the descriptor index's search method and pool size (exact scan or IVF)."""
     import sfm_laserscale.pipeline as pipeline
-    build = pipeline.build_descriptor_index
+    build = pipeline.build_index
 
     def recorded(*args: Any, **kwargs: Any) -> Any:
         index = build(*args, **kwargs)
         rec["index"] = {"method": index.method, "descriptors": index.num_descriptors,
                         "ivf_lists": index.ivf_lists, "ivf_probe": index.ivf_probe}
         return index
-    pipeline.build_descriptor_index = recorded  # type: ignore[assignment]
+    pipeline.build_index = recorded  # type: ignore[assignment]
     crop = pipeline.crop_mesh
 
     def cropped(*args: Any, **kwargs: Any) -> Any:

@@ -931,10 +931,53 @@ def build_descriptor_index(
     ``features_from_images``. Features of images absent from the model are ignored. The
     mapping is read three times, one image at a time: it may read from disk on access.
     """
+    return build_index(model, select_index_candidates(model, features, options), features,
+                       options)
+
+
+@dataclass
+class IndexCandidates:
+    """Pass 1 of the descriptor index (``select_index_candidates``): the descriptors of each
+    image that have a 3D point, and a random k-means sample.
+
+    It holds nothing of the model's 2D observations: a caller short of memory drops them
+    (``SparseModel.without_observations``, 46 MB at 1M points) before ``build_index``, which
+    consumes this (the sample is released during the build).
+    """
+
+    selection: _Selection
+    sample: NDArray[np.uint8] | None  # (T, 128); None once consumed
+    rng: np.random.Generator  # the seeded generator, continued by the build
+
+
+def select_index_candidates(
+    model: SparseModel,
+    features: Mapping[str, ImageFeatures] | Mapping[str, ObservationFeatures],
+    options: IndexOptions | RegistrationOptions,
+) -> IndexCandidates:
+    """Pass 1 of ``build_descriptor_index``: the only one that reads the observations."""
     if isinstance(options, RegistrationOptions):
         options = options.index
+    rng = np.random.default_rng(options.seed)
     p = _train_probability(model, list(features), options)
-    return _index(model, lambda rng: _select(model, features, p, rng),
+    sel, sample = _select(model, features, p, rng)
+    return IndexCandidates(sel, sample, rng)
+
+
+def build_index(
+    model: SparseModel, candidates: IndexCandidates,
+    features: Mapping[str, ImageFeatures] | Mapping[str, ObservationFeatures],
+    options: IndexOptions | RegistrationOptions,
+) -> DescriptorIndex:
+    """Passes 2-3 of ``build_descriptor_index`` over the same features; of the model only
+    the points are used (its observations may have been dropped)."""
+    if isinstance(options, RegistrationOptions):
+        options = options.index
+    if candidates.sample is None:
+        raise ValueError("these index candidates were already built into an index")
+    once = [candidates.sample]  # popped by the build, which frees it once trained on
+    candidates.sample = None
+    return _index(model, lambda _: (candidates.selection, once.pop()), candidates.rng,
                   lambda name: features[name].descriptors, options)
 
 
@@ -959,15 +1002,15 @@ def index_pool(model: SparseModel, pool: DescriptorPool,
     """The searchable index of a descriptor pool: exact search for small pools, else IVF."""
     if isinstance(options, RegistrationOptions):
         options = options.index
-    return _index(model, lambda rng: _pool_selection(pool, options, rng),
+    rng = np.random.default_rng(options.seed)
+    return _index(model, lambda rng: _pool_selection(pool, options, rng), rng,
                   lambda _: pool.descriptors, options)
 
 
-def _index(model: SparseModel, select: Any, descriptors_of: Any,
+def _index(model: SparseModel, select: Any, rng: np.random.Generator, descriptors_of: Any,
            options: IndexOptions) -> DescriptorIndex:
     """The exact pool or the IVF of the candidates: ``select(rng)`` (pass 1) returns them and
     a k-means sample; ``descriptors_of(name)`` gives an image's descriptors (passes 2-3)."""
-    rng = np.random.default_rng(options.seed)
     sel, drawn = select(rng)
     per_point = max(1, options.max_descriptors_per_point)
     size = int(np.minimum(np.bincount(sel.point_rows), per_point).sum())  # pool size

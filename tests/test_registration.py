@@ -378,6 +378,28 @@ def colmap_fixture(tmp_path_factory: pytest.TempPathFactory
     return model, read_database_features(db)
 
 
+def test_index_in_two_steps_equals_one_and_needs_no_observations(
+        colmap_fixture: tuple[SparseModel, dict[str, ImageFeatures]]) -> None:
+    """Pass 1 (the only one reading the 2D observations), then passes 2-3 on the model without
+    them: the same index as in one call; the candidates are consumed."""
+    from sfm_laserscale.registration import build_index, select_index_candidates
+
+    model, feats = colmap_fixture
+    for opts in (IndexOptions(), IndexOptions(exact=False, ivf_lists=30)):
+        whole = build_descriptor_index(model, feats, opts)
+        candidates = select_index_candidates(model, feats, opts)
+        index = build_index(model.without_observations(), candidates, feats, opts)
+        np.testing.assert_array_equal(index.point_rows, whole.point_rows)
+        np.testing.assert_array_equal(index.descriptors, whole.descriptors)
+        assert (index.method, index.ivf_lists) == (whole.method, whole.ivf_lists)
+        if index.method == "ivf":
+            q = feats["01.jpg"].descriptors[:200].astype(np.float32)
+            np.testing.assert_array_equal(index._searcher.search(q, 3)[1],
+                                          whole._searcher.search(q, 3)[1])
+        with pytest.raises(ValueError, match="already built"):
+            build_index(model, candidates, feats, opts)
+
+
 @pytest.mark.parametrize("name", ["03.jpg", "01.jpg"])
 def test_held_out_fixture_image_registers_on_its_original_pose(
         colmap_fixture: tuple[SparseModel, dict[str, ImageFeatures]], name: str) -> None:

@@ -114,10 +114,16 @@ def open_model_features(
     """``load_model_features`` as a mapping valid inside the ``with`` block: a COLMAP
     database is read one image at a time, on access, so its features are never all held
     in memory (the descriptor index reads them image by image)."""
+    # this generator's frame outlives its caller's use of the model: it keeps no reference,
+    # so the caller can drop the model's observations while the features are open
     if model.source_format == "openmvg" or database is None:
-        yield load_model_features(model, model_path, database, images_dir, features_dir, tie)
+        loaded = load_model_features(model, model_path, database, images_dir, features_dir, tie)
+        del model
+        yield loaded
         return
-    with open_database_features(database, [im.name for im in model.images.values()]) as feats:
+    names = [im.name for im in model.images.values()]
+    del model
+    with open_database_features(database, names) as feats:
         logger.info("descriptors of %d model images read from %s, one image at a time",
                     len(feats), database)
         yield feats
