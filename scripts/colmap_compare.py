@@ -115,23 +115,28 @@ def run_colmap(model: Path, database: Path, laser_dir: Path, work: Path,
 def ours_child(model: Path, database: Path, laser_dir: Path) -> dict[str, Any]:
     """Our registration of the laser images (run in a fresh process by run_ours)."""
     t0 = time.perf_counter()
-    from sfm_laserscale.io.images import read_rgb
+    from sfm_laserscale.io.images import LaserImage, read_rgb
     from sfm_laserscale.io.models import load_model, load_model_features
     from sfm_laserscale.pipeline import ScaleOptions
     from sfm_laserscale.registration import build_descriptor_index, extract_sift, register_image
+    from sfm_laserscale.sift_workers import start_sift_pool
     opts = ScaleOptions()
     t_import = time.perf_counter()
     m = load_model(model)
+    cam = next(iter(m.cameras.values()))
+    paths = [p for p in sorted(laser_dir.iterdir()) if p.suffix.lower() in (".png", ".jpg")]
+    # as in ``scale``: worker processes extract SIFT while the index is built (COLMAP's
+    # feature_extractor also uses every core)
+    pool = start_sift_pool([LaserImage(p.name, p, cam) for p in paths], opts.sift,
+                           opts.sift_workers)
     feats = load_model_features(m, model, database, None, None, opts.tie)
     index = build_descriptor_index(m, feats, opts.index)
     t_load = time.perf_counter()
-    cam = next(iter(m.cameras.values()))
     poses, sift_s, reg_s = {}, 0.0, 0.0
-    for p in sorted(laser_dir.iterdir()):
-        if p.suffix.lower() not in (".png", ".jpg"):
-            continue
+    for p in paths:
         a = time.perf_counter()
-        f = extract_sift(read_rgb(p), opts.sift)
+        rgb = read_rgb(p)
+        f = extract_sift(rgb, opts.sift) if pool is None else pool.features(p, rgb)
         b = time.perf_counter()
         r = register_image(f, cam, index, opts.registration)
         reg_s += time.perf_counter() - b
@@ -139,6 +144,8 @@ def ours_child(model: Path, database: Path, laser_dir: Path) -> dict[str, Any]:
         if r.success and r.cam_from_world is not None:
             poses[p.name] = {"R": r.cam_from_world.R.tolist(), "t": r.cam_from_world.t.tolist(),
                              "inliers": r.num_inliers}
+    if pool is not None:
+        pool.close()
     return {"seconds": {"import": t_import - t0, "load_index": t_load - t_import,
                         "sift": sift_s, "match_pose": reg_s,
                         "in_process": time.perf_counter() - t_import},

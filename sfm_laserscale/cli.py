@@ -150,11 +150,18 @@ _path = click.Path(path_type=Path)
 @click.option(
     "--seed", type=int, default=0, show_default=True, help="Seed for every random choice."
 )
+@click.option(
+    "--workers",
+    type=click.IntRange(min=0),
+    help="Worker processes extracting the laser images' SIFT beside this one "
+    "[one per free core, within half the available memory; 0: none].",
+)
 @click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
 @common_options
 def scale(**kw: Any) -> int:
     """Estimate the model's metric scale and write the rescaled model, mesh and report."""
     from sfm_laserscale.pipeline import ScaleInputs, ScaleOptions, run_scale
+    from sfm_laserscale.sift_workers import SiftWorkerOptions
 
     inputs = ScaleInputs(
         model=kw["model"],
@@ -166,7 +173,8 @@ def scale(**kw: Any) -> int:
         features=kw["features"],
         spots=kw["spots"],
     )
-    options = ScaleOptions(method=kw["method"], seed=kw["seed"], progress=not kw["quiet"])
+    options = ScaleOptions(method=kw["method"], seed=kw["seed"], progress=not kw["quiet"],
+                           sift_workers=SiftWorkerOptions(workers=kw["workers"]))
     result = run_scale(inputs, kw["out"], options, overwrite=kw["overwrite"])
     click.echo(result.summary)
     return EXIT_OK if result.success else EXIT_NO_SCALE

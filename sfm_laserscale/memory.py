@@ -10,7 +10,6 @@ libraries (macOS, musl) have no such call; there this is a no-op.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import functools
 import logging
 
@@ -19,12 +18,13 @@ logger = logging.getLogger(__name__)
 
 @functools.cache
 def _libc() -> ctypes.CDLL | None:
-    name = ctypes.util.find_library("c")
+    # the symbols already loaded in this process (libc among them): ctypes.util.find_library
+    # forks ``ldconfig -p`` from a process that may hold gigabytes and threads by then
     try:
-        lib = ctypes.CDLL(name) if name else None
-    except OSError:
+        lib = ctypes.CDLL(None)
+    except OSError:  # pragma: no cover - no dynamic loader
         return None
-    return lib if lib is not None and hasattr(lib, "malloc_trim") else None
+    return lib if hasattr(lib, "malloc_trim") else None
 
 
 def trim_heap() -> bool:

@@ -32,6 +32,7 @@ from sfm_laserscale.model import Camera, Pose, SparseModel, Spot
 from sfm_laserscale.provenance import (
     captured_colmap_log,
     captured_log,
+    merged_glog,
     progress_bar,
     provenance,
     run_log_text,
@@ -60,6 +61,7 @@ from sfm_laserscale.registration import (
     select_index_candidates,
 )
 from sfm_laserscale.rig import Rig, load_rig
+from sfm_laserscale.sift_workers import SiftPool, SiftWorkerOptions, start_sift_pool
 from sfm_laserscale.uncertainty import (
     EstimationOptions,
     ImageEstimates,
@@ -95,6 +97,7 @@ class ScaleOptions:
     overlays: bool = True
     detection: DetectionOptions = field(default_factory=DetectionOptions)
     sift: SiftOptions = field(default_factory=SiftOptions)
+    sift_workers: SiftWorkerOptions = field(default_factory=SiftWorkerOptions)
     tie: TieOptions = field(default_factory=TieOptions)
     index: IndexOptions = field(default_factory=IndexOptions)
     registration: RegistrationOptions = field(default_factory=RegistrationOptions)
@@ -122,6 +125,8 @@ class LoadedInputs:
     manual_spots: dict[str, list[Spot]]
     index: DescriptorIndex | None  # None once every laser image is registered (peak memory)
     descriptors_indexed: int  # the index's size, for the report
+    # worker processes extracting the laser images' SIFT meanwhile; run_scale closes it
+    sift_pool: SiftPool | None = None
 
 
 @dataclass(frozen=True)
@@ -173,18 +178,37 @@ class Timer:
             k: round(self.seconds.get(k, 0.0), 4)
             for k in ("load", "detect", "register", "raycast", "estimate", "write")
         }
+        for k in ("sift_here", "sift_in_workers"):  # when worker processes shared the SIFT
+            if k in self.seconds:
+                out[k] = round(self.seconds[k], 4)
         out["total"] = round(time.perf_counter() - self._start, 4)
         return out
 
 
 def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
-    """Read and validate every input; raises InputError on bad input (exit 2)."""
+    """Read and validate every input; raises InputError on bad input (exit 2). The laser
+    images' SIFT starts in worker processes as soon as they are listed (``sift_pool``)."""
     rig = load_rig(inputs.rig)
     model = load_model(inputs.model)
     laser_images = find_laser_images(inputs.laser_images, model)
     manual: dict[str, list[Spot]] = {}
     if inputs.spots is not None:
         manual = read_spots_csv(inputs.spots, [li.name for li in laser_images], rig.names)
+    pool = start_sift_pool(laser_images, options.sift, options.sift_workers)
+    try:
+        model, index = _load_index(inputs, model, options)
+        mesh = load_mesh(inputs.mesh)
+    except BaseException:
+        if pool is not None:
+            pool.close()
+        raise
+    return LoadedInputs(model, mesh, rig, tuple(laser_images), manual, index,
+                        index.num_descriptors, pool)
+
+
+def _load_index(inputs: ScaleInputs, model: SparseModel,
+                options: ScaleOptions) -> tuple[SparseModel, DescriptorIndex]:
+    """The descriptor index, and the model without the 2D observations it no longer needs."""
     # peak memory: a database's features are read one image at a time by the index build,
     # never all held beside the index, and the mesh is read once the index is built
     with open_model_features(model, inputs.model, inputs.database, inputs.images,
@@ -204,8 +228,7 @@ def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
             raise InputError(f"image {exc.path}: {exc.problem}", source) from exc
     del candidates
     trim_heap()
-    mesh = load_mesh(inputs.mesh)
-    return LoadedInputs(model, mesh, rig, laser_images, manual, index, index.num_descriptors)
+    return model, index
 
 
 def _spots_for(
@@ -244,8 +267,11 @@ def detect_and_register(image: LaserImage, loaded: LoadedInputs, options: ScaleO
     if loaded.index is None:
         raise ValueError("the descriptor index was released: register before run_scale drops it")
     with timer("register"):
-        reg = register_image(extract_sift(rgb, options.sift), camera, loaded.index,
-                             options.registration)
+        pool = loaded.sift_pool
+        feats = (extract_sift(rgb, options.sift) if pool is None
+                 else pool.features(image.path, rgb))
+        del rgb
+        reg = register_image(feats, camera, loaded.index, options.registration)
     done = dict(registration=reg, detection=det, spots=spots, spot_reasons=spot_reasons)
     if not reg.success or reg.cam_from_world is None:
         return _image_run(image, reg.reason or "registration failed", **done)
@@ -393,6 +419,27 @@ def fuse_all(runs: Sequence[ImageRun], rig: Rig, options: ScaleOptions) -> Metho
     return MethodFusion(headline, fused, joint)
 
 
+def register_all(loaded: LoadedInputs, options: ScaleOptions, timer: Timer) -> list[ImageRun]:
+    """Detect and register every laser image, in order (SIFT may come from the pool)."""
+    runs = []
+    for li in progress_bar(options.progress, "laser images", iterable=loaded.laser_images,
+                           unit="img"):
+        t0 = time.perf_counter()
+        runs.append(detect_and_register(li, loaded, options, timer))
+        trim_heap()  # the image's pixels and detection planes (~16 bytes per pixel)
+        what = runs[-1].reason and f"not registered ({runs[-1].reason})"
+        logger.info("laser image %s (%s): %s in %.2f s", li.name, li.path,
+                    what or "registered", time.perf_counter() - t0)
+    pool = loaded.sift_pool
+    if pool is not None:
+        timer.seconds["sift_here"] = pool.seconds_here
+        timer.seconds["sift_in_workers"] = pool.seconds_in_workers
+        logger.info("SIFT: %d of %d laser images in %d worker process(es), %.2f s there, "
+                    "%.2f s here", pool.images_in_workers, len(runs), pool.workers,
+                    pool.seconds_in_workers, pool.seconds_here)
+    return runs
+
+
 def run_scale(
     inputs: ScaleInputs,
     out_dir: Path,
@@ -409,16 +456,15 @@ def run_scale(
         logger.info("sfm-laserscale %s: scale %s", __version__, inputs)
         with timer("load"):
             loaded = load_inputs(inputs, options)
-        runs = []
-        for li in progress_bar(options.progress, "laser images", iterable=loaded.laser_images,
-                               unit="img"):
-            t0 = time.perf_counter()
-            runs.append(detect_and_register(li, loaded, options, timer))
-            trim_heap()  # the image's pixels and detection planes (~16 bytes per pixel)
-            what = runs[-1].reason and f"not registered ({runs[-1].reason})"
-            logger.info("laser image %s (%s): %s in %.2f s", li.name, li.path,
-                        what or "registered", time.perf_counter() - t0)
-        loaded = replace(loaded, index=None)  # registration is over: the index's memory goes
+        worker_glog: list[str] = []
+        try:
+            runs = register_all(loaded, options, timer)
+        finally:
+            if loaded.sift_pool is not None:
+                loaded.sift_pool.close()
+                worker_glog = loaded.sift_pool.glog_lines
+        # registration is over: the index's memory goes
+        loaded = replace(loaded, index=None, sift_pool=None)
         trim_heap()
         with timer("raycast"):
             crop = crop_mesh(runs, loaded, options)
@@ -446,8 +492,8 @@ def run_scale(
                  *(li.path for li in loaded.laser_images)], options)
             write_outputs(tmp, inputs, loaded, runs, headline, report, options, timer)
             logger.info("run finished: %s", report["timings_s"])
-            (tmp / "run.log").write_text(run_log_text(log_lines, colmap_log.lines()),
-                                         encoding="utf-8")
+            glog = merged_glog(colmap_log.lines(), worker_glog)
+            (tmp / "run.log").write_text(run_log_text(log_lines, glog), encoding="utf-8")
     success = bool(np.isfinite(headline.value))
     summary = summary_line(headline, runs)
     return ScaleResult(

@@ -9,6 +9,7 @@ import dataclasses
 import hashlib
 import logging
 import os
+import re
 import shutil
 import sys
 import tempfile
@@ -155,6 +156,7 @@ class ColmapLog:
 
 
 _GLOG_DIR_PREFIX = "sfm_laserscale_glog_"
+_GLOG_TIME = re.compile(r"[IWEF](\d{8} \d\d:\d\d:\d\d\.\d{6}) ")
 
 
 def _pid_alive(pid: int) -> bool:
@@ -207,6 +209,21 @@ def captured_colmap_log() -> Iterator[ColmapLog]:
         for key, value in saved.items():
             setattr(lg, key, value)
         shutil.rmtree(folder, ignore_errors=True)
+
+
+def merged_glog(*sources: Sequence[str]) -> list[str]:
+    """glog lines of several processes in time order (a line without a timestamp stays with
+    the line before it; equal times keep the sources' order)."""
+    groups: list[tuple[str, int, list[str]]] = []
+    for k, lines in enumerate(sources):
+        for ln in lines:
+            if groups and groups[-1][1] == k and not _GLOG_TIME.match(ln):
+                groups[-1][2].append(ln)
+            else:
+                m = _GLOG_TIME.match(ln)
+                groups.append((m.group(1) if m else "", k, [ln]))
+    groups.sort(key=lambda g: g[0])
+    return [ln for _, _, block in groups for ln in block]
 
 
 def run_log_text(lines: Sequence[str], colmap_lines: Sequence[str]) -> str:

@@ -34,3 +34,23 @@ def test_trim_returns_freed_heap_blocks_to_the_os() -> None:
     after = _rss()
     assert before - after > 200 << 20, (before >> 20, after >> 20)
     del pin
+
+
+@pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ver()[0] != "glibc",
+                    reason="malloc_trim is glibc's")
+def test_trim_finds_libc_without_a_subprocess(monkeypatch: pytest.MonkeyPatch) -> None:
+    """ctypes.util.find_library forked ``ldconfig -p`` from the run's process (0.4 GB by then,
+    with threads); libc is looked up among the symbols already loaded instead."""
+    import subprocess
+
+    import sfm_laserscale.memory as memory
+
+    def no_subprocess(*args: object, **kwargs: object) -> None:
+        raise AssertionError(f"subprocess started: {args}")
+
+    monkeypatch.setattr(subprocess.Popen, "__init__", no_subprocess)
+    memory._libc.cache_clear()
+    try:
+        assert trim_heap() is True
+    finally:
+        memory._libc.cache_clear()

@@ -63,7 +63,6 @@ import json
 import logging
 import math
 import multiprocessing
-import os
 import sys
 import time
 from array import array
@@ -93,6 +92,7 @@ from sfm_laserscale.raycast import (
 )
 from sfm_laserscale.registration import PoseOptions, estimate_pose
 from sfm_laserscale.rig import Rig, rig_from_dict
+from sfm_laserscale.sift_workers import available_cpus
 from sfm_laserscale.synthetic.dataset import make_rig
 from sfm_laserscale.uncertainty import (
     METHODS,
@@ -137,10 +137,7 @@ def default_camera() -> Camera:
 
 def available_workers() -> int:
     """CPUs this process may use (the default number of worker processes)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
+    return max(1, available_cpus())
 
 
 # --------------------------------------------------------------------------- configurations

@@ -1,0 +1,163 @@
+"""SIFT of the laser images in worker processes: planning, identical features, a worker that
+dies or fails, and the pipeline with and without workers (same numbers)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from sfm_laserscale.cli import main
+from sfm_laserscale.errors import InputError
+from sfm_laserscale.io.images import read_rgb
+from sfm_laserscale.provenance import merged_glog
+from sfm_laserscale.registration import ImageFeatures, SiftOptions, extract_sift
+from sfm_laserscale.sift_workers import (
+    SiftPool,
+    SiftWorkerOptions,
+    glog_lines,
+    plan_workers,
+)
+
+GB = 2**30
+
+
+def _laser_paths(ds: Any) -> list[Path]:
+    return sorted(ds.laser_images_dir.glob("*.png"))
+
+
+def _same(a: ImageFeatures, b: ImageFeatures) -> bool:
+    return bool(np.array_equal(a.xy_px, b.xy_px) and np.array_equal(a.descriptors, b.descriptors))
+
+
+@pytest.mark.parametrize(
+    ("n_images", "pixels", "cpus", "avail", "workers", "expected"),
+    [
+        (6, 640 * 480, 2, 16 * GB, None, 1),  # one free core
+        (6, 640 * 480, 8, 16 * GB, None, 5),  # fewer workers than images
+        (1, 640 * 480, 8, 16 * GB, None, 0),  # one image: this process alone
+        (20, 640 * 480, 8, 16 * GB, None, 7),  # this process keeps a core
+        (6, 640 * 480, 1, 16 * GB, None, 0),  # one core: none
+        (20, 4000 * 3000, 16, 8 * GB, None, 1),  # 0.3 GB + 3.6 GB each, half of 8 GB: one
+        (20, 4000 * 3000, 16, 3 * GB, None, 0),  # not even one fits
+        (20, 640 * 480, 8, None, None, 7),  # memory unknown: cores decide
+        (6, 640 * 480, 1, 16 * GB, 3, 3),  # asked for: taken as given
+        (2, 640 * 480, 8, 16 * GB, 5, 2),  # ... but no more than images
+        (6, 640 * 480, 8, 16 * GB, 0, 0),
+        (0, 0, 8, 16 * GB, None, 0),
+    ],
+)
+def test_plan_workers(n_images: int, pixels: int, cpus: int, avail: int | None,
+                      workers: int | None, expected: int) -> None:
+    options = SiftWorkerOptions(workers=workers)
+    assert plan_workers(n_images, pixels, cpus, avail, options) == expected
+
+
+def test_worker_options_reject_bad_values() -> None:
+    with pytest.raises(InputError, match=">= 0"):
+        SiftWorkerOptions(workers=-1)
+    with pytest.raises(InputError, match="memory_share"):
+        SiftWorkerOptions(memory_share=0.0)
+
+
+def test_pool_features_are_bit_identical_and_shared(small_dataset: Any) -> None:
+    """Two workers and this process share the images; every image's features are those of
+    ``extract_sift`` here, whoever extracted them."""
+    paths = _laser_paths(small_dataset)
+    options = SiftOptions()
+    local = [extract_sift(read_rgb(p), options) for p in paths]
+    with SiftPool(paths, options, workers=2) as pool:
+        time.sleep(3.0)  # the workers start and take images from the back
+        got = [pool.features(p, read_rgb(p)) for p in paths]
+        assert pool.workers == 2
+        assert pool.images_in_workers >= 1 and pool.seconds_in_workers > 0
+    assert all(_same(a, b) for a, b in zip(local, got, strict=True))
+    # the workers' pycolmap (glog) lines are kept for run.log: one extractor per image
+    made = [ln for ln in pool.glog_lines if "Creating SIFT CPU feature extractor" in ln]
+    assert len(made) == pool.images_in_workers
+
+
+def test_pool_killed_worker_gives_its_image_back(small_dataset: Any,
+                                                 caplog: pytest.LogCaptureFixture) -> None:
+    """A worker killed while extracting: this process extracts that image, with a warning."""
+    paths = _laser_paths(small_dataset)
+    options = SiftOptions()
+    with SiftPool(paths, options, workers=1) as pool:
+        w = pool._workers[0]
+        deadline = time.monotonic() + 30
+        while w.current is None and time.monotonic() < deadline:
+            time.sleep(0.005)
+        lost = w.current
+        assert lost is not None, "the worker never took an image"
+        with caplog.at_level(logging.WARNING, logger="sfm_laserscale.sift_workers"):
+            w.proc.kill()
+            got = [pool.features(p, read_rgb(p)) for p in paths]
+        assert not w.alive
+    assert "SIFT worker" in caplog.text and "extracted in this process" in caplog.text
+    assert all(_same(extract_sift(read_rgb(p), options), g) for p, g in zip(paths, got,
+                                                                           strict=True))
+
+
+def test_pool_raises_the_workers_error_for_its_image(tmp_path: Path, small_dataset: Any) -> None:
+    """An image the worker cannot read: its InputError is raised when that image is asked for."""
+    good = _laser_paths(small_dataset)[0]
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(b"not a png at all")
+    with SiftPool([good, bad], SiftOptions(), workers=1) as pool:
+        deadline = time.monotonic() + 30
+        while pool.images_in_workers == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert pool.images_in_workers >= 1  # the worker takes the last image first: the bad one
+        with pytest.raises(InputError, match="not a readable image"):
+            pool.features(bad, None)
+        assert _same(pool.features(good, read_rgb(good)), extract_sift(read_rgb(good),
+                                                                        SiftOptions()))
+    with pytest.raises(ValueError, match="not one of the pool's images"):
+        pool.features(tmp_path / "other.png", None)
+
+
+def _numbers(report: dict[str, Any]) -> dict[str, Any]:
+    return {"scale": report["scale"], "methods": report["methods"], "images": report["images"]}
+
+
+def test_scale_with_and_without_workers_gives_the_same_report(small_dataset: Any,
+                                                              tmp_path: Path) -> None:
+    """``scale --workers 0`` and ``--workers 2`` (CliRunner): the same numbers; the report
+    says how the SIFT time was shared."""
+    from sfm_laserscale.demo import scale_inputs_for
+
+    inputs = scale_inputs_for(small_dataset)
+    reports = {}
+    for n in (0, 2):
+        out = tmp_path / f"out{n}"
+        args = ["scale", "-q", "--workers", str(n), "--model", str(inputs.model), "--mesh",
+                str(inputs.mesh), "--rig", str(inputs.rig), "--database", str(inputs.database),
+                "--out", str(out)]
+        for p in inputs.laser_images:
+            args += ["--laser-images", str(p)]
+        res = CliRunner().invoke(main, args)
+        assert res.exit_code == 0, res.output
+        reports[n] = json.loads((out / "report.json").read_text())
+    assert _numbers(reports[0]) == _numbers(reports[2])
+    assert "sift_in_workers" not in reports[0]["timings_s"]
+    assert reports[2]["timings_s"]["sift_in_workers"] > 0
+    assert "worker process(es)" in (tmp_path / "out2" / "run.log").read_text()
+    res = CliRunner().invoke(main, ["scale", "--workers", "-1", "--model", "x", "--mesh", "x",
+                                    "--rig", "x", "--out", "x", "--laser-images", "x"])
+    assert res.exit_code == 2 and "--workers" in res.output
+
+
+def test_merged_glog_orders_processes_by_time() -> None:
+    here = ["I20261125 10:00:00.000001 1 a.cc:1] first", "  continued",
+            "W20261125 10:00:02.000000 1 a.cc:2] third"]
+    worker = ["I20261125 10:00:01.500000 9 sift.cc:764] second",
+              "I20261125 10:00:03.000000 9 sift.cc:764] fourth"]
+    assert merged_glog(here, worker) == [here[0], here[1], worker[0], here[2], worker[1]]
+    assert glog_lines("Traceback (most recent call last):\n" + worker[0] + "\nboom\n") == [
+        worker[0]]
