@@ -1056,21 +1056,18 @@ def _use_exact(num_descriptors: int, options: IndexOptions) -> bool:
 
 def _exact_knn(pool: NDArray[np.float32], query: NDArray[np.float32], k: int) -> tuple[
         NDArray[np.int64], NDArray[np.float32]]:
-    """(Q, k) exact nearest neighbours by chunked ‖q‖² − 2 q·d + ‖d‖² (sorted by distance)."""
-    pool_sq = np.einsum("ij,ij->i", pool, pool)
-    chunk = max(1, (1 << 24) // max(len(pool), 1))  # ~64 MB of float32 distances per block
-    idx = np.empty((len(query), k), dtype=np.int64)
-    d2 = np.empty((len(query), k), dtype=np.float32)
-    for s in range(0, len(query), chunk):
-        q = query[s:s + chunk]
-        full = pool_sq[None, :] - 2.0 * (q @ pool.T) + np.einsum("ij,ij->i", q, q)[:, None]
-        part = np.argpartition(full, k - 1, axis=1)[:, :k] if k < len(pool) else \
-            np.broadcast_to(np.arange(len(pool)), (len(q), len(pool)))
-        vals = np.take_along_axis(full, part, axis=1)
-        order = np.argsort(vals, axis=1, kind="stable")
-        idx[s:s + chunk] = np.take_along_axis(part, order, axis=1)
-        d2[s:s + chunk] = np.take_along_axis(vals, order, axis=1)
-    return idx, np.sqrt(np.maximum(d2, 0.0))
+    """(Q, min(k, P)) exact nearest neighbours and their L2 distances, sorted by distance.
+
+    FAISS's flat L2 index: BLAS distances and a heap per query. numpy's row-wise
+    ``argpartition`` over the (Q, P) distance matrix took 0.67 s for one 640 x 480 image
+    (6915 queries, 5604 descriptors) against 0.05 s here."""
+    k = min(k, len(pool))
+    if k == 0:
+        return np.zeros((len(query), 0), np.int64), np.zeros((len(query), 0), np.float32)
+    flat = faiss.IndexFlatL2(pool.shape[1])
+    flat.add(np.ascontiguousarray(pool, dtype=np.float32))
+    d2, idx = flat.search(np.ascontiguousarray(query, dtype=np.float32), k)
+    return np.asarray(idx, dtype=np.int64), np.sqrt(np.maximum(d2, 0.0)).astype(np.float32)
 
 
 def _knn(index: DescriptorIndex, query: NDArray[np.float32], k: int) -> tuple[

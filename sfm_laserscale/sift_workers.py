@@ -45,7 +45,7 @@ class SiftWorkerOptions:
 
     workers: int | None = None  # None: min(free cores, images, memory); 0: none
     # memory a worker may use: its imports plus SIFT's working set per pixel (measured:
-    # 0.09 GB at 640 x 480, 0.55 GB at 1920 x 1080, 2.6 GB at 4000 x 3000, i.e. <= 300 B/px)
+    # 0.55-0.59 GB at 1920 x 1080, 2.6-3.3 GB at 4000 x 3000, i.e. <= 300 B/px)
     worker_base_bytes: int = 300 * 2**20
     sift_bytes_per_pixel: float = 300.0
     memory_share: float = 0.5  # of the memory available when the run starts
