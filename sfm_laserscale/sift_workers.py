@@ -15,10 +15,12 @@ and the run goes on, with a warning naming the worker's last error output.
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import pickle
 import re
+import signal
 import subprocess
 import sys
 import tempfile
@@ -36,6 +38,7 @@ from sfm_laserscale.registration import ImageFeatures, SiftOptions, extract_sift
 logger = logging.getLogger(__name__)
 
 _READY = "ready"
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
 _GLOG_LINE = re.compile(r"[IWEF]\d{8} \d\d:\d\d:\d\d\.\d{6} ")
 
 
@@ -134,7 +137,8 @@ class SiftPool:
         # This process's BLAS and OpenMP (FAISS) threads are left as they are: limited to the
         # cores the workers leave, the index build and the search took 1.5-2x longer (FAISS
         # IVF search at 1M points 1.9 -> 3.1 s, 640 x 480, 2 cores), sharing cost less.
-        self._workers = [self._start_worker() for _ in range(workers)]
+        started = [self._start_worker() for _ in range(workers)]
+        self._workers = [w for w in started if w is not None]
         self._threads = [threading.Thread(target=self._serve, args=(w,), daemon=True,
                                           name=f"sift-worker-{i}")
                          for i, w in enumerate(self._workers)]
@@ -146,11 +150,21 @@ class SiftPool:
         """Number of worker processes started."""
         return len(self._workers)
 
-    def _start_worker(self) -> _Worker:
+    def _start_worker(self) -> _Worker | None:
+        """A worker process importing this very package; None (and a warning) if none starts."""
         err = tempfile.TemporaryFile()  # noqa: SIM115 - closed by close()
-        env = dict(os.environ, OMP_NUM_THREADS="1")  # glog to stderr: kept for run.log
-        proc = subprocess.Popen([sys.executable, "-m", __name__], stdin=subprocess.PIPE,
-                                stdout=subprocess.PIPE, stderr=err, env=env)
+        here = str(Path(__file__).resolve().parents[1])  # the folder holding sfm_laserscale
+        path = os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p)
+        # glog keeps writing to stderr (the file above): its lines go into run.log
+        env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=path)
+        try:
+            proc = subprocess.Popen([sys.executable or "python3", "-m", __name__],
+                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err,
+                                    env=env)
+        except OSError as exc:
+            err.close()
+            logger.warning("no SIFT worker process (%s): SIFT runs in this process", exc)
+            return None
         return _Worker(proc, err)
 
     def _claim_from_back(self, w: _Worker) -> int | None:
@@ -303,8 +317,21 @@ def _serve_requests(inp: IO[bytes], out: IO[bytes]) -> None:
         out.flush()
 
 
+def _die_with_parent() -> None:
+    """Linux: the kernel kills this worker when the thread that started it dies (a killed
+    run leaves no worker finishing an image nobody will read); elsewhere a no-op."""
+    try:
+        libc = ctypes.CDLL(None)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (OSError, AttributeError):  # pragma: no cover - not Linux
+        return
+    if os.getppid() == 1:  # the parent died before prctl: nobody will read the results
+        os._exit(0)
+
+
 def main() -> None:
     """Worker entry point: results on the original stdout, anything printed goes to stderr."""
+    _die_with_parent()
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     _serve_requests(sys.stdin.buffer, out)

@@ -5,10 +5,13 @@ from __future__ import annotations
 
 import json
 import logging
+import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -120,6 +123,82 @@ def test_pool_raises_the_workers_error_for_its_image(tmp_path: Path, small_datas
                                                                         SiftOptions()))
     with pytest.raises(ValueError, match="not one of the pool's images"):
         pool.features(tmp_path / "other.png", None)
+
+
+def test_pool_without_a_startable_worker_extracts_here(small_dataset: Any, tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch,
+                                                       caplog: pytest.LogCaptureFixture) -> None:
+    """No interpreter to start: a warning, no worker, every image extracted here."""
+    paths = _laser_paths(small_dataset)[:2]
+    monkeypatch.setattr("sys.executable", str(tmp_path / "no-such-python"))
+    with (caplog.at_level(logging.WARNING, logger="sfm_laserscale.sift_workers"),
+          SiftPool(paths, SiftOptions(), workers=1) as pool):
+        got = [pool.features(p, read_rgb(p)) for p in paths]
+        assert pool.workers == 0 and pool.images_in_workers == 0
+    assert "no SIFT worker process" in caplog.text
+    assert all(_same(extract_sift(read_rgb(p), SiftOptions()), g) for p, g in zip(paths, got,
+                                                                                   strict=True))
+
+
+def test_worker_imports_this_package_from_another_folder(small_dataset: Any, tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """The worker finds the package the caller imported, whatever the working folder."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("PYTHONPATH", raising=False)
+    path = _laser_paths(small_dataset)[-1]
+    with SiftPool([path], SiftOptions(), workers=1) as pool:
+        deadline = time.monotonic() + 30
+        while pool.images_in_workers == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert pool.images_in_workers == 1
+        assert _same(pool.features(path, None), extract_sift(read_rgb(path), SiftOptions()))
+
+
+_ORPHAN_SCRIPT = """
+import sys, time
+from pathlib import Path
+from sfm_laserscale.registration import SiftOptions
+from sfm_laserscale.sift_workers import SiftPool
+pool = SiftPool([Path(p) for p in sys.argv[1:]], SiftOptions(), workers=1)
+while pool._workers[0].current is None:
+    time.sleep(0.005)
+print(pool._workers[0].proc.pid, flush=True)
+time.sleep(60)
+"""
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="PR_SET_PDEATHSIG is Linux's")
+def test_worker_dies_with_a_killed_run(small_dataset: Any, tmp_path: Path) -> None:
+    """SIGKILL of the process that started a worker, mid-image: the worker goes at once, not
+    after the image (a 4000 x 3000 image: ~12 s of SIFT)."""
+    small = read_rgb(_laser_paths(small_dataset)[0])
+    big = np.tile(small, (7, 7, 1))[:3000, :4000]
+    paths = []
+    for i in range(2):
+        paths.append(str(tmp_path / f"big{i}.png"))
+        cv2.imwrite(paths[-1], big[:, :, ::-1])
+    proc = subprocess.Popen([sys.executable, "-c", _ORPHAN_SCRIPT, *paths],
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        assert proc.stdout is not None
+        worker = int(proc.stdout.readline())
+        proc.kill()
+        proc.wait()
+        deadline = time.monotonic() + 3.0
+        while _alive(worker) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert not _alive(worker), f"worker {worker} outlived the run"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def _alive(pid: int) -> bool:
+    """The process exists and is not a zombie waiting to be reaped."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
 
 
 def _numbers(report: dict[str, Any]) -> dict[str, Any]:
