@@ -34,6 +34,7 @@ from typing import IO, Any
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.images import LaserImage, read_rgb
 from sfm_laserscale.registration import ImageFeatures, SiftOptions, extract_sift
+from sfm_laserscale.resources import available_cpus, available_memory_bytes
 
 logger = logging.getLogger(__name__)
 
@@ -73,26 +74,6 @@ def plan_workers(n_images: int, max_pixels: int, cpus: int, available_bytes: int
         per_worker = options.worker_base_bytes + options.sift_bytes_per_pixel * max_pixels
         n = min(n, int(options.memory_share * available_bytes // per_worker))
     return max(n, 0)
-
-
-def available_cpus() -> int:
-    """Cores this process may run on (its affinity mask, else the machine's count)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
-
-
-def available_memory_bytes() -> int | None:
-    """MemAvailable of /proc/meminfo in bytes, None where the kernel does not say."""
-    try:
-        with open("/proc/meminfo", encoding="ascii") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:  # pragma: no cover - not Linux
-        return None
-    return None  # pragma: no cover
 
 
 @dataclass

@@ -91,8 +91,8 @@ from sfm_laserscale.raycast import (
     pixel_rays,
 )
 from sfm_laserscale.registration import PoseOptions, estimate_pose
+from sfm_laserscale.resources import available_cpus
 from sfm_laserscale.rig import Rig, rig_from_dict
-from sfm_laserscale.sift_workers import available_cpus
 from sfm_laserscale.synthetic.dataset import make_rig
 from sfm_laserscale.uncertainty import (
     METHODS,
