@@ -109,6 +109,7 @@ class SiftPool:
         self._cond = threading.Condition()
         self._claimed = [False] * len(self._paths)
         self._results: dict[int, tuple[ImageFeatures | BaseException, float]] = {}
+        self._delivered: set[int] = set()  # asked for again: extracted here, never waited for
         self._back = len(self._paths) - 1
         self._closed = False
         self.seconds_here = 0.0  # SIFT wall time spent in this process
@@ -204,10 +205,12 @@ class SiftPool:
         if index is None:
             raise ValueError(f"{path} is not one of the pool's images")
         with self._cond:
-            while index not in self._results and self._claimed[index]:
+            while (index not in self._results and self._claimed[index]
+                   and index not in self._delivered):
                 self._cond.wait()
-            local = not self._claimed[index]
+            local = not self._claimed[index] or index in self._delivered
             self._claimed[index] = True
+            self._delivered.add(index)
             done = None if local else self._results.pop(index)
         if done is None:
             t0 = time.perf_counter()

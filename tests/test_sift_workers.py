@@ -125,6 +125,20 @@ def test_pool_raises_the_workers_error_for_its_image(tmp_path: Path, small_datas
         pool.features(tmp_path / "other.png", None)
 
 
+def test_pool_image_asked_for_twice_is_extracted_again(small_dataset: Any) -> None:
+    """A second request for an image returns the same features (extracted here) instead of
+    waiting for a worker result that was already handed out."""
+    paths = _laser_paths(small_dataset)
+    with SiftPool(paths, SiftOptions(), workers=1) as pool:
+        last = paths[-1]
+        deadline = time.monotonic() + 30
+        while pool.images_in_workers == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        first = pool.features(last, read_rgb(last))  # the worker's
+        again = pool.features(last, read_rgb(last))  # this process's
+    assert _same(first, again)
+
+
 def test_pool_without_a_startable_worker_extracts_here(small_dataset: Any, tmp_path: Path,
                                                        monkeypatch: pytest.MonkeyPatch,
                                                        caplog: pytest.LogCaptureFixture) -> None:
