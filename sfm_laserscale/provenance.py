@@ -211,6 +211,12 @@ def captured_colmap_log() -> Iterator[ColmapLog]:
         shutil.rmtree(folder, ignore_errors=True)
 
 
+def glog_lines(text: str) -> list[str]:
+    """The glog lines (``[IWEF]yyyymmdd hh:mm:ss.uuuuuu ...``) of a text, e.g. a process's
+    stderr."""
+    return [ln for ln in text.splitlines() if _GLOG_TIME.match(ln)]
+
+
 def merged_glog(*sources: Sequence[str]) -> list[str]:
     """glog lines of several processes in time order (a line without a timestamp stays with
     the line before it; equal times keep the sources' order)."""

@@ -51,10 +51,6 @@ def _proc_cgroup() -> str:
     return _read(Path("/proc/self/cgroup")) or ""
 
 
-def _smallest(values: list[float]) -> float | None:
-    return min(values) if values else None
-
-
 def _cpu_quota(folder: Path) -> float | None:
     """CPUs of one group's quota: v2 ``cpu.max`` ("max 100000" or "200000 100000"), v1
     ``cpu.cfs_quota_us`` / ``cpu.cfs_period_us`` (-1: none)."""
@@ -90,7 +86,7 @@ def _over_groups(root: Path, proc_cgroup: str | None, controller: str,
     except (OSError, ValueError) as exc:  # an unreadable or unexpected cgroup file: no limit
         logger.debug("cgroup %s limit not read: %s", controller, exc)
         return None
-    return _smallest(values)
+    return min(values) if values else None
 
 
 def cgroup_cpu_limit(root: Path = CGROUP_ROOT, proc_cgroup: str | None = None) -> float | None:

@@ -19,7 +19,6 @@ import ctypes
 import logging
 import os
 import pickle
-import re
 import signal
 import subprocess
 import sys
@@ -33,6 +32,7 @@ from typing import IO, Any
 
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.images import LaserImage, read_rgb
+from sfm_laserscale.provenance import glog_lines
 from sfm_laserscale.registration import ImageFeatures, SiftOptions, extract_sift
 from sfm_laserscale.resources import available_cpus, available_memory_bytes
 
@@ -40,7 +40,6 @@ logger = logging.getLogger(__name__)
 
 _READY = "ready"
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
-_GLOG_LINE = re.compile(r"[IWEF]\d{8} \d\d:\d\d:\d\d\.\d{6} ")
 
 
 @dataclass(frozen=True)
@@ -179,8 +178,8 @@ class SiftPool:
                     self._cond.notify_all()
         except Exception as exc:  # noqa: BLE001 - any failure: the image comes back here
             self._worker_died(w, exc)
-        finally:
-            self._stop(w)
+            return
+        self._stop(w)
 
     def _worker_died(self, w: _Worker, exc: BaseException) -> None:
         with self._cond:
@@ -266,11 +265,6 @@ def start_sift_pool(images: Sequence[LaserImage], sift: SiftOptions,
         return None
     logger.info("SIFT of %d laser images shared with %d worker process(es)", len(usable), n)
     return SiftPool([li.path for li in usable], sift, n)
-
-
-def glog_lines(text: str) -> list[str]:
-    """The glog lines (``[IWEF]yyyymmdd hh:mm:ss.uuuuuu ...``) of a worker's stderr."""
-    return [ln for ln in text.splitlines() if _GLOG_LINE.match(ln)]
 
 
 def _picklable(exc: BaseException) -> BaseException:

@@ -19,12 +19,11 @@ from click.testing import CliRunner
 from sfm_laserscale.cli import main
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.images import read_rgb
-from sfm_laserscale.provenance import merged_glog
+from sfm_laserscale.provenance import glog_lines, merged_glog
 from sfm_laserscale.registration import ImageFeatures, SiftOptions, extract_sift
 from sfm_laserscale.sift_workers import (
     SiftPool,
     SiftWorkerOptions,
-    glog_lines,
     plan_workers,
 )
 

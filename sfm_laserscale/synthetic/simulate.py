@@ -137,7 +137,7 @@ def default_camera() -> Camera:
 
 def available_workers() -> int:
     """CPUs this process may use (the default number of worker processes)."""
-    return max(1, available_cpus())
+    return available_cpus()
 
 
 # --------------------------------------------------------------------------- configurations
