@@ -41,6 +41,9 @@ logger = logging.getLogger(__name__)
 Path_ = Sequence[str | int]
 
 
+SVG_MIME = "image/svg+xml"
+
+
 def data_uri(data: bytes, mime: str) -> str:
     """``data:<mime>;base64,...``"""
     return f"data:{mime};base64," + base64.b64encode(data).decode("ascii")
@@ -167,7 +170,7 @@ def render_html(report: dict[str, Any], out_dir: Path) -> str:
             r=report,
             n=_Numbers(report),
             overlays=_overlays(report, out_dir),
-            plots={k: None if v is None else data_uri(v, "image/png") for k, v in plots.items()},
+            plots={k: None if v is None else data_uri(v, SVG_MIME) for k, v in plots.items()},
             methods=methods,
             labels=METHOD_LABELS,
             lasers=lasers,

@@ -1,49 +1,45 @@
-"""Report plots (matplotlib, Agg) drawn from the report.json dict: PNG bytes, no files."""
+"""Report plots as SVG, drawn from the report.json dict: SVG bytes, no files.
+
+Drawn with ``svgchart`` (see there why not matplotlib). Every marker carries its value as
+``data-value``, so tests can check each one's position against the axis ticks.
+"""
 
 from __future__ import annotations
 
-import io
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.axes import Axes  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.lines import Line2D  # noqa: E402
-
-from sfm_laserscale.report.analysis import (  # noqa: E402
+from sfm_laserscale.report.analysis import (
     METHOD_LABELS,
     METHOD_ORDER,
     pcm_joint_fell_back,
 )
-from sfm_laserscale.report.style import WARNING_HEX, laser_color_hex  # noqa: E402
+from sfm_laserscale.report.style import WARNING_HEX, laser_color_hex
+from sfm_laserscale.report.svgchart import (
+    Frame,
+    LegendEntry,
+    Svg,
+    error_bar,
+    legend,
+    legend_width,
+    marker,
+    nice_ticks,
+    text_width,
+    tick_labels,
+    x_axis,
+    x_labels_height,
+    y_axis,
+)
 
-_DPI = 150
+_WIDTH = 1000.0
 _INK = "#1a1a1a"
-_RC: Any = {
-    "font.size": 9.5,
-    "axes.titlesize": 10.5,
-    "axes.labelsize": 9.5,
-    "axes.spines.top": False,
-    "axes.spines.right": False,
-    "legend.fontsize": 8.5,
-    "legend.frameon": False,
-}
+_BAND = "#999999"
+_MARKER = 10.0  # marker size (user units across)
 
 
 def _finite(x: Any) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-
-def _png(fig: Figure) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=_DPI)
-    plt.close(fig)
-    return buf.getvalue()
 
 
 @dataclass
@@ -57,7 +53,20 @@ class _Point:
     color: str
     kept: bool
     filled: bool = False
-    size: float = 6.5
+    size: float = _MARKER
+
+
+@dataclass
+class _Panel:
+    """What one plot area shows: points, values the y range must hold, reference lines
+    (value, colour, width, dash) and the shaded 95 % band."""
+
+    points: list[_Point]
+    extra: list[Any]
+    fmt: str
+    ylabel: str
+    lines: list[tuple[float, str, float, str | None]] = field(default_factory=list)
+    band: tuple[float, float] | None = None
 
 
 def _limits(points: list[_Point], extra: list[Any]) -> tuple[float, float] | None:
@@ -74,49 +83,73 @@ def _limits(points: list[_Point], extra: list[Any]) -> tuple[float, float] | Non
     return lo - pad, hi + pad
 
 
-def _draw(ax: Axes, points: list[_Point], extra: list[Any], fmt: str) -> None:
+def _ylim(panel: _Panel) -> tuple[float, float]:
+    lim = _limits(panel.points, panel.extra)
+    return lim if lim is not None else (-1.0, 1.0)
+
+
+def _draw_points(svg: Svg, frame: Frame, points: list[_Point], fmt: str) -> None:
     """Markers with error bars; points beyond the kept points' range (rejected outliers) are
     drawn as arrows at the axis edge with their value, so they do not squash the others."""
-    lim = _limits(points, extra)
-    inside = [p for p in points if lim is None or lim[0] <= p.y <= lim[1]]
-    # one errorbar call per style, not per point: matplotlib's cost is per artist
-    # (54 calls took a third of the per-laser plot's time)
-    groups: dict[tuple[str, str, bool, float, bool], list[_Point]] = {}
-    for p in inside:
-        groups.setdefault((p.marker, p.color, p.filled, p.size, p.err is not None), []).append(p)
-    for (marker, color, filled, size, has_err), group in groups.items():
-        ax.errorbar(
-            [p.x for p in group],
-            [p.y for p in group],
-            yerr=[float(p.err or 0.0) for p in group] if has_err else None,
-            fmt=marker,
-            ms=size,
-            mfc=color if filled else "white",
-            mec=color,
-            ecolor=color,
-            mew=1.6,
-            elinewidth=1.0,
-            capsize=2,
-            zorder=4 if filled else 3,
-        )
-    drawn = {id(p) for p in inside}
-    for p in points:
-        if lim is None or id(p) in drawn:
+    lo, hi = frame.ylim
+    for p in sorted(points, key=lambda q: q.filled):  # filled (image) markers on top
+        x = frame.x(p.x)
+        if lo <= p.y <= hi:
+            if p.err is not None and _finite(p.err) and p.err > 0:
+                error_bar(svg, x, frame.y(max(p.y - p.err, lo)), frame.y(min(p.y + p.err, hi)),
+                          p.color)
+            marker(svg, p.marker, x, frame.y(p.y), p.size, p.color, p.filled, data=repr(p.y))
             continue
-        top = p.y > lim[1]
-        y = lim[1] if top else lim[0]
-        ax.plot(p.x, y, "^" if top else "v", ms=8, color=p.color, clip_on=False, zorder=5)
-        ax.annotate(
-            fmt.format(p.y),
-            (p.x, y),
-            xytext=(7, -2 if top else 2),
-            textcoords="offset points",
-            fontsize=8,
-            color=p.color,
-            va="top" if top else "bottom",
-        )
-    if lim is not None:
-        ax.set_ylim(*lim)
+        top = p.y > hi
+        y = frame.top if top else frame.bottom
+        marker(svg, "^" if top else "v", x, y, 11.0, p.color, True, 1.0, repr(p.y), True)
+        svg.text(x + 9, y + (12 if top else -6), fmt.format(p.y).replace("-", "\u2212"),
+                 size=11.5, color=p.color, cls="outlier")
+
+
+def _draw_panel(svg: Svg, frame: Frame, panel: _Panel) -> None:
+    """Grid and y axis, band, reference lines, then the points."""
+    y_axis(svg, frame, nice_ticks(*frame.ylim), panel.ylabel)
+    if panel.band is not None:
+        b_lo, b_hi = (min(max(v, frame.ylim[0]), frame.ylim[1]) for v in panel.band)
+        svg.rect(frame.left, frame.y(b_hi), frame.width, frame.y(b_lo) - frame.y(b_hi), _BAND,
+                 opacity=0.22, cls="band")
+    for value, color, width, dash in panel.lines:
+        if frame.ylim[0] <= value <= frame.ylim[1]:
+            svg.line(frame.left, frame.y(value), frame.right, frame.y(value), color, width, dash)
+    _draw_points(svg, frame, panel.points, panel.fmt)
+
+
+def _chart(title: str, panels: list[tuple[_Panel, float]], names: list[str],
+           entries: list[LegendEntry], height: float) -> bytes:
+    """Panels stacked (relative heights) sharing the image axis, title and legend on the right."""
+    ylims = [_ylim(p) for p, _ in panels]
+    widest = max(text_width(s) for lim in ylims for s in tick_labels(nice_ticks(*lim)) or ["0"])
+    left = widest + 48.0
+    right = _WIDTH - legend_width(entries) - 24.0
+    xlim = (-0.6, len(names) - 0.4)
+    spacing = (right - left) / max(len(names), 1)
+    rotate = bool(names) and max(text_width(n) for n in names) > 0.92 * spacing
+    if rotate:  # the first slanted label must not run off the left edge
+        reach = text_width(names[0]) * math.cos(math.radians(35)) - 4.0
+        left = max(left, reach + 6.0 - 0.6 * spacing)
+    bottom = height - x_labels_height(names, rotate)
+    top, gap = 34.0, 18.0
+    avail = bottom - top - gap * (len(panels) - 1)
+    total = sum(w for _, w in panels)
+    svg = Svg(_WIDTH, height, title)
+    svg.text(left, 20, title, size=14.5, cls="title")
+    for (panel, weight), ylim in zip(panels, ylims, strict=True):
+        h = avail * weight / total
+        frame = Frame(left, top, right - left, h, xlim, ylim)
+        svg.add('<g class="panel">')
+        _draw_panel(svg, frame, panel)
+        last = panel is panels[-1][0]
+        x_axis(svg, frame, list(range(len(names))), names if last else None, rotate)
+        svg.add("</g>")
+        top += h + gap
+    legend(svg, right + 20.0, 34.0, entries)
+    return svg.tobytes()
 
 
 def per_laser_method(report: dict[str, Any]) -> str | None:
@@ -130,27 +163,6 @@ def per_laser_method(report: dict[str, Any]) -> str | None:
 def _rejected(image: dict[str, Any], method: str, laser: str, est: dict[str, Any]) -> bool:
     fused = image.get("fused", {}).get(method, {})
     return bool(est["rejected"]) or any(r["laser"] == laser for r in fused.get("rejected", []))
-
-
-def _image_ticks(ax: Axes, names: list[str]) -> None:
-    rot = 0 if len(names) <= 6 and max(len(n) for n in names) <= 16 else 35
-    ax.set_xticks(range(len(names)), names, rotation=rot, ha="right" if rot else "center")
-    ax.set_xlim(-0.6, len(names) - 0.4)
-
-
-def _band(ax: Axes, block: dict[str, Any], label: str, rel_to: float | None = None) -> None:
-    """Fused value (dashed) and its 95 % interval (grey band), optionally in % of ``rel_to``."""
-    v: Any = block.get("value")
-    lo, hi = block.get("ci95", [None, None])
-    if not _finite(v):
-        return
-
-    def t(x: float) -> float:
-        return x if rel_to is None else 100.0 * (x / rel_to - 1.0)
-
-    if _finite(lo) and _finite(hi):
-        ax.axhspan(t(float(lo)), t(float(hi)), color="0.6", alpha=0.22, lw=0, zorder=0)
-    ax.axhline(t(float(v)), ls="--", color="0.15", lw=1.1, zorder=1, label=label)
 
 
 def _laser_points(
@@ -180,35 +192,8 @@ def _laser_points(
         if f and _finite(f["scale"]):
             c = _INK if f["used"] else WARNING_HEX
             err = f["sigma"] if _finite(f["sigma"]) else None
-            top.append(_Point(i, f["scale"], err, "x", c, f["used"], True, 10.0))
+            top.append(_Point(i, f["scale"], err, "x", c, f["used"], True, 14.0))
     return top, dev
-
-
-def _legend_handles(report: dict[str, Any], names: list[str], method: str) -> list[Line2D]:
-    def mk(marker: str, color: str, label: str, mfc: str = "white") -> Line2D:
-        return Line2D(
-            [],
-            [],
-            marker=marker,
-            ls="none",
-            color=color,
-            mec=color,
-            mfc=mfc,
-            mew=1.6,
-            ms=7,
-            label=label,
-        )
-
-    lasers = report["rig"]["lasers"]
-    h = [
-        mk("o", laser_color_hex(lasers.index(n) if n in lasers else i), n)
-        for i, n in enumerate(names)
-    ]
-    h.append(mk("x", _INK, "image estimate", mfc=_INK))
-    h.append(Line2D([], [], ls="--", color="0.15", label=f"fused {METHOD_LABELS[method]}"))
-    h.append(Line2D([], [], lw=7, color="0.6", alpha=0.4, label="95 % interval"))
-    h.append(mk("s", WARNING_HEX, "rejected"))
-    return h
 
 
 def _names(report: dict[str, Any], images: list[dict[str, Any]], method: str) -> list[str]:
@@ -225,20 +210,47 @@ def _names(report: dict[str, Any], images: list[dict[str, Any]], method: str) ->
     ]
 
 
-def _deviation_panel(ax: Axes, dev: list[_Point], report: dict[str, Any]) -> None:
+def _legend(report: dict[str, Any], names: list[str], method: str) -> list[LegendEntry]:
+    lasers = report["rig"]["lasers"]
+    return [
+        *(
+            LegendEntry("o", laser_color_hex(lasers.index(n) if n in lasers else i), n)
+            for i, n in enumerate(names)
+        ),
+        LegendEntry("x", _INK, "image estimate", True),
+        LegendEntry("dash", _INK, f"fused {METHOD_LABELS[method]}"),
+        LegendEntry("band", _BAND, "95 % interval"),
+        LegendEntry("s", WARNING_HEX, "rejected"),
+    ]
+
+
+def _band_of(block: dict[str, Any], rel_to: float | None = None) -> tuple[
+        list[tuple[float, str, float, str | None]], tuple[float, float] | None]:
+    """The fused value's dashed line and its 95 % band, optionally in % of ``rel_to``."""
+    v: Any = block.get("value")
+    lo, hi = block.get("ci95", [None, None])
+    if not _finite(v):
+        return [], None
+
+    def t(x: float) -> float:
+        return x if rel_to is None else 100.0 * (x / rel_to - 1.0)
+
+    band = (t(float(lo)), t(float(hi))) if _finite(lo) and _finite(hi) else None
+    return [(t(float(v)), "#262626", 1.4, "6 4")], band
+
+
+def _deviation_panel(dev: list[_Point], report: dict[str, Any]) -> _Panel:
     """Each laser's deviation (%) from its image's estimate; dotted lines at the flag limit."""
     lim = report.get("diagnostics", {}).get("thresholds", {}).get("laser_deviation_min_pct")
-    ax.axhline(0.0, color="0.15", lw=1.0)
+    lines: list[tuple[float, str, float, str | None]] = [(0.0, "#262626", 1.2, None)]
     if _finite(lim):
-        for y in (-lim, lim):
-            ax.axhline(y, color="0.45", lw=0.9, ls=":")
-    _draw(ax, dev, [-lim, lim] if _finite(lim) else [0.0], "{:+.2f} %")
-    ax.set_ylabel("deviation from image (%)")
-    ax.grid(axis="y", alpha=0.3)
+        lines += [(-lim, "#737373", 1.0, "2 3"), (lim, "#737373", 1.0, "2 3")]
+    extra = [-lim, lim] if _finite(lim) else [0.0]
+    return _Panel(dev, extra, "{:+.2f} %", "deviation from image (%)", lines)
 
 
 def per_laser_plot(report: dict[str, Any]) -> bytes | None:
-    """The paper's per-laser plot: per image each laser's estimate (circles), the image's
+    """The paper's per-laser plot (SVG): per image each laser's estimate (circles), the image's
     estimate (cross), the fused scale (dashed) and its 95 % band; below, each laser's
     deviation (%) from its image's estimate. None when nothing can be plotted."""
     method = per_laser_method(report)
@@ -246,41 +258,40 @@ def per_laser_plot(report: dict[str, Any]) -> bytes | None:
         return None
     images = [im for im in report["images"] if any(e["method"] == method for e in im["estimates"])]
     names = _names(report, images, method)
-    with plt.rc_context(_RC):
-        if method == "fcm":
-            fig, (ax, ax_dev) = plt.subplots(
-                2,
-                1,
-                figsize=(10.0, 6.2),
-                sharex=True,
-                gridspec_kw={"height_ratios": [3, 2]},
-                layout="constrained",
-            )
-        else:  # one pair per image: the pair IS the image estimate, no deviation panel
-            fig, ax = plt.subplots(figsize=(10.0, 3.8), layout="constrained")
-            ax_dev = None
-        block = report["methods"].get(method, {})
-        _band(ax, block, f"fused {METHOD_LABELS[method]}")
-        top, dev = _laser_points(report, images, method, names)
-        _draw(ax, top, [block.get("value"), *block.get("ci95", [])], "{:.6g}")
-        ax.set_ylabel("scale (m per model unit)")
-        what = "laser" if method == "fcm" else "pair"
-        ax.set_title(f"{METHOD_LABELS[method]} estimate per image and {what}", loc="left")
-        ax.grid(axis="y", alpha=0.3)
-        ax.ticklabel_format(axis="y", useOffset=False)
-        ax.legend(
-            handles=_legend_handles(report, names, method),
-            loc="upper left",
-            bbox_to_anchor=(1.01, 1.0),
-        )
-        if ax_dev is not None:
-            _deviation_panel(ax_dev, dev, report)
-        _image_ticks(ax if ax_dev is None else ax_dev, [im["name"] for im in images])
-        return _png(fig)
+    block = report["methods"].get(method, {})
+    lines, band = _band_of(block)
+    top, dev = _laser_points(report, images, method, names)
+    main = _Panel(top, [block.get("value"), *block.get("ci95", [])], "{:.6g}",
+                  "scale (m per model unit)", lines, band)
+    what = "laser" if method == "fcm" else "pair"
+    title = f"{METHOD_LABELS[method]} estimate per image and {what}"
+    panels = [(main, 3.0), (_deviation_panel(dev, report), 2.0)] if method == "fcm" else [
+        (main, 1.0)]  # one pair per image: the pair IS the image estimate, no deviation panel
+    return _chart(title, panels, [im["name"] for im in images],
+                  _legend(report, names, method), 620.0 if method == "fcm" else 380.0)
+
+
+_METHOD_MARKERS = {"fcm": "X", "pcm": "o", "pcm_joint": "D", "direct3d": "^"}
+
+
+def _method_points(images: list[dict[str, Any]], methods: list[str], head: float) -> list[_Point]:
+    """Each method's per-image scale as % from the headline, ±1σ, side by side per image."""
+    pts = []
+    for mi, m in enumerate(methods):
+        dx = (mi - (len(methods) - 1) / 2) * 0.12
+        for i, im in enumerate(images):
+            f = im["fused"].get(m)
+            if not f or not _finite(f["scale"]):
+                continue
+            err = 100.0 * f["sigma"] / head if _finite(f["sigma"]) else None
+            pts.append(_Point(i + dx, 100.0 * (f["scale"] / head - 1.0), err,
+                              _METHOD_MARKERS.get(m, "o"), _INK if f["used"] else WARNING_HEX,
+                              f["used"], m == "fcm", 10.0))
+    return pts
 
 
 def methods_plot(report: dict[str, Any]) -> bytes | None:
-    """Every method's per-image scale as a deviation (%) from the headline scale (±1σ)."""
+    """Every method's per-image scale as a deviation (%) from the headline scale (±1σ), SVG."""
     head = report["scale"]["value"]
     if not _finite(head):
         return None
@@ -290,64 +301,12 @@ def methods_plot(report: dict[str, Any]) -> bytes | None:
         methods = [m for m in methods if m != "pcm_joint"]
     if not images or not methods:
         return None
-    markers = {"fcm": "X", "pcm": "o", "pcm_joint": "D", "direct3d": "^"}
-    with plt.rc_context(_RC):
-        fig, ax = plt.subplots(figsize=(10.0, 3.6), layout="constrained")
-        _band(ax, report["scale"], f"headline {METHOD_LABELS[report['scale']['method']]}", head)
-        pts = []
-        for mi, m in enumerate(methods):
-            dx = (mi - (len(methods) - 1) / 2) * 0.12
-            for i, im in enumerate(images):
-                f = im["fused"].get(m)
-                if not f or not _finite(f["scale"]):
-                    continue
-                c = _INK if f["used"] else WARNING_HEX
-                err = 100.0 * f["sigma"] / head if _finite(f["sigma"]) else None
-                pts.append(
-                    _Point(
-                        i + dx,
-                        100.0 * (f["scale"] / head - 1.0),
-                        err,
-                        markers.get(m, "o"),
-                        c,
-                        f["used"],
-                        m == "fcm",
-                        7.0,
-                    )
-                )
-        lo, hi = report["scale"]["ci95"]
-        band = [100.0 * (x / head - 1.0) for x in (lo, hi) if _finite(x)]
-        _draw(ax, pts, [0.0, *band], "{:+.2f} %")
-        handles = [
-            Line2D(
-                [],
-                [],
-                marker=markers.get(m, "o"),
-                ls="none",
-                color=_INK,
-                mfc=_INK if m == "fcm" else "white",
-                ms=7,
-                label=METHOD_LABELS[m],
-            )
-            for m in methods
-        ]
-        handles.append(Line2D([], [], lw=7, color="0.6", alpha=0.4, label="headline 95 %"))
-        handles.append(
-            Line2D(
-                [],
-                [],
-                marker="s",
-                ls="none",
-                color=WARNING_HEX,
-                mfc="white",
-                ms=7,
-                label="left out",
-            )
-        )
-        ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-        ax.axhline(0.0, color="0.15", lw=1.0, ls="--")
-        ax.set_ylabel("vs. headline scale (%)")
-        ax.set_title("Per-image scale of every method", loc="left")
-        ax.grid(axis="y", alpha=0.3)
-        _image_ticks(ax, [im["name"] for im in images])
-        return _png(fig)
+    _, band = _band_of(report["scale"], head)
+    panel = _Panel(_method_points(images, methods, head), [0.0, *(band or ())], "{:+.2f} %",
+                   "vs. headline scale (%)", [(0.0, "#262626", 1.2, "6 4")], band)
+    entries = [LegendEntry(_METHOD_MARKERS.get(m, "o"), _INK, METHOD_LABELS[m], m == "fcm")
+               for m in methods]
+    entries += [LegendEntry("band", _BAND, "headline 95 %"),
+                LegendEntry("s", WARNING_HEX, "left out")]
+    return _chart("Per-image scale of every method", [(panel, 1.0)],
+                  [im["name"] for im in images], entries, 360.0)

@@ -1,6 +1,7 @@
 """Checks of a rendered report.html against its report.json dict (stdlib HTML parser).
 
-- every ``<img>`` holds a non-empty PNG or JPEG data URI that decodes;
+- every ``<img>`` holds a non-empty PNG or JPEG data URI that decodes, or an SVG one that
+  parses and draws something;
 - every overlay named in report.json is on the page, the per-laser plot is there whenever an
   image has an estimate to plot, and the methods plot whenever there is a scale and an image
   has a per-image value of a method;
@@ -15,6 +16,7 @@ import binascii
 import json
 import math
 import re
+import xml.etree.ElementTree as ET
 from html.parser import HTMLParser
 from typing import Any
 
@@ -75,14 +77,29 @@ def decode_data_uri(src: str) -> tuple[str, bytes]:
     return m.group(1), data
 
 
+def _svg_problem(data: bytes) -> str | None:
+    """Why SVG bytes are not a drawable SVG document (None when they are)."""
+    try:
+        root = ET.fromstring(data)
+    except ET.ParseError as exc:
+        return f"image/svg+xml does not parse ({exc})"
+    if root.tag != "{http://www.w3.org/2000/svg}svg":
+        return "image/svg+xml has no <svg> root"
+    if not any(el.tag.rsplit("}", 1)[-1] not in ("title", "desc") for el in root):
+        return "image/svg+xml draws nothing"
+    return None
+
+
 def image_problem(src: str) -> str | None:
-    """Why a data URI is not a decodable PNG/JPEG (None when it is)."""
+    """Why a data URI is not a decodable PNG/JPEG or a drawable SVG (None when it is)."""
     if not src:
         return "empty src"
     try:
         mime, data = decode_data_uri(src)
     except ValueError as exc:
         return str(exc)
+    if mime == "image/svg+xml":
+        return _svg_problem(data)
     magic = _MAGIC.get(mime)
     if magic is None:
         return f"unexpected type {mime}"
