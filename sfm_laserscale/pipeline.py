@@ -32,6 +32,7 @@ from sfm_laserscale.model import Camera, Pose, SparseModel, Spot
 from sfm_laserscale.provenance import (
     captured_colmap_log,
     captured_log,
+    digests_in_background,
     merged_glog,
     progress_bar,
     provenance,
@@ -440,6 +441,37 @@ def register_all(loaded: LoadedInputs, options: ScaleOptions, timer: Timer) -> l
     return runs
 
 
+def _estimate_all(
+    inputs: ScaleInputs, loaded: LoadedInputs, runs: list[ImageRun], options: ScaleOptions,
+    timer: Timer,
+) -> tuple[LoadedInputs, list[ImageRun], MethodFusion, dict[str, Any]]:
+    """Crop the mesh to the rays, cast and estimate every image, fuse, check the mesh against
+    the model: (inputs without the full mesh, runs, fusion, checks)."""
+    with timer("raycast"):
+        crop = crop_mesh(runs, loaded, options)
+        loaded = replace(loaded, mesh=None)  # the crop is all the rest needs
+        trim_heap()
+        caster = crop.raycaster()
+    logger.info("mesh cropped to the spots' rays and the check points: %d of %d triangles "
+                "(%.2f %%)", len(crop.triangles), crop.source_triangles, 100 * crop.kept_fraction)
+    runs = [cast_and_estimate(r, loaded, caster, options, timer) for r in runs]
+    for r in runs:
+        logger.info("laser image %s: %s", r.name,
+                    "estimated" if r.reason is None else f"no estimate ({r.reason})")
+    fusion = fuse_all(runs, loaded.rig, options)
+    checks = {"mesh_model_agreement": mesh_model_agreement(
+        mesh_check_points(runs, options, loaded.model.extent), caster, loaded.model.extent,
+        lambda: load_mesh(inputs.mesh))}
+    logger.info("timings so far: %s", timer.as_dict())
+    return loaded, runs, fusion, checks
+
+
+def _provenance_inputs(inputs: ScaleInputs, loaded: LoadedInputs) -> list[Path | None]:
+    """The files the provenance block hashes: every input of the run."""
+    return [inputs.model, inputs.mesh, inputs.rig, inputs.database, inputs.spots,
+            *(li.path for li in loaded.laser_images)]
+
+
 def run_scale(
     inputs: ScaleInputs,
     out_dir: Path,
@@ -466,34 +498,20 @@ def run_scale(
         # registration is over: the index's memory goes
         loaded = replace(loaded, index=None, sift_pool=None)
         trim_heap()
-        with timer("raycast"):
-            crop = crop_mesh(runs, loaded, options)
-            loaded = replace(loaded, mesh=None)  # the crop is all the rest needs
-            trim_heap()
-            caster = crop.raycaster()
-        logger.info("mesh cropped to the spots' rays and the check points: %d of %d triangles "
-                    "(%.2f %%)", len(crop.triangles), crop.source_triangles,
-                    100 * crop.kept_fraction)
-        runs = [cast_and_estimate(r, loaded, caster, options, timer) for r in runs]
-        for r in runs:
-            logger.info("laser image %s: %s", r.name,
-                        "estimated" if r.reason is None else f"no estimate ({r.reason})")
-        fusion = fuse_all(runs, loaded.rig, options)
-        headline, fused, joint = fusion.headline, fusion.methods, fusion.pcm_joint
-        checks = {"mesh_model_agreement": mesh_model_agreement(
-            mesh_check_points(runs, options, loaded.model.extent), caster, loaded.model.extent,
-            lambda: load_mesh(inputs.mesh))}
-        logger.info("timings so far: %s", timer.as_dict())
-        with staged_output_dir(out_dir, overwrite) as tmp, timer("write"):
-            report = build_report(inputs, options, loaded, runs, headline, fused, checks, timer,
-                                  pcm_joint=joint)
-            report["provenance"] = provenance(
-                [inputs.model, inputs.mesh, inputs.rig, inputs.database, inputs.spots,
-                 *(li.path for li in loaded.laser_images)], options)
-            write_outputs(tmp, inputs, loaded, runs, headline, report, options, timer)
-            logger.info("run finished: %s", report["timings_s"])
-            glog = merged_glog(colmap_log.lines(), worker_glog)
-            (tmp / "run.log").write_text(run_log_text(log_lines, glog), encoding="utf-8")
+        # the SIFT workers are done: the inputs' SHA-256 for the provenance is computed on
+        # the core they leave, beside the rest of the run
+        with digests_in_background(_provenance_inputs(inputs, loaded)) as digests:
+            loaded, runs, fusion, checks = _estimate_all(inputs, loaded, runs, options, timer)
+            headline, fused, joint = fusion.headline, fusion.methods, fusion.pcm_joint
+            with staged_output_dir(out_dir, overwrite) as tmp, timer("write"):
+                report = build_report(inputs, options, loaded, runs, headline, fused, checks, timer,
+                                      pcm_joint=joint)
+                report["provenance"] = provenance(_provenance_inputs(inputs, loaded), options,
+                                                  digests)
+                write_outputs(tmp, inputs, loaded, runs, headline, report, options, timer)
+                logger.info("run finished: %s", report["timings_s"])
+                glog = merged_glog(colmap_log.lines(), worker_glog)
+                (tmp / "run.log").write_text(run_log_text(log_lines, glog), encoding="utf-8")
     success = bool(np.isfinite(headline.value))
     summary = summary_line(headline, runs)
     return ScaleResult(
