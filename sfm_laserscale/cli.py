@@ -153,8 +153,9 @@ _path = click.Path(path_type=Path)
 @click.option(
     "--workers",
     type=click.IntRange(min=0),
-    help="Worker processes extracting the laser images' SIFT beside this one "
-    "[one per free core, within half the available memory; 0: none].",
+    help="Worker processes extracting SIFT beside this one (laser images; model images "
+    "re-extracted with --images) [one per free core, within half the available memory; "
+    "0: none].",
 )
 @click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
 @common_options

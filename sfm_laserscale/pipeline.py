@@ -188,16 +188,23 @@ class Timer:
 
 def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
     """Read and validate every input; raises InputError on bad input (exit 2). The laser
-    images' SIFT starts in worker processes as soon as they are listed (``sift_pool``)."""
+    images' SIFT starts in worker processes as soon as they are listed (``sift_pool``), or
+    once the model images' are done when those are re-extracted (``--images``)."""
     rig = load_rig(inputs.rig)
     model = load_model(inputs.model)
     laser_images = find_laser_images(inputs.laser_images, model)
     manual: dict[str, list[Spot]] = {}
     if inputs.spots is not None:
         manual = read_spots_csv(inputs.spots, [li.name for li in laser_images], rig.names)
-    pool = start_sift_pool(laser_images, options.sift, options.sift_workers)
+    # the model images' SIFT, when it is re-extracted, has the workers first (the index
+    # needs it before any laser image can be registered)
+    reextract = inputs.images is not None and inputs.database is None
+    pool = None if reextract else start_sift_pool(laser_images, options.sift,
+                                                  options.sift_workers)
     try:
         model, index = _load_index(inputs, model, options)
+        if reextract:
+            pool = start_sift_pool(laser_images, options.sift, options.sift_workers)
         mesh = load_mesh(inputs.mesh)
     except BaseException:
         if pool is not None:
@@ -213,8 +220,8 @@ def _load_index(inputs: ScaleInputs, model: SparseModel,
     # peak memory: a database's features are read one image at a time by the index build,
     # never all held beside the index, and the mesh is read once the index is built
     with open_model_features(model, inputs.model, inputs.database, inputs.images,
-                             inputs.features, replace(options.tie, progress=options.progress)
-                             ) as features:
+                             inputs.features, replace(options.tie, progress=options.progress),
+                             options.sift_workers) as features:
         try:
             candidates = select_index_candidates(model, features, options.index)
             # the candidates hold what the index needs of the 2D observations; the rest of

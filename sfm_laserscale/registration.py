@@ -53,7 +53,7 @@ from __future__ import annotations
 import logging
 import struct
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -441,33 +441,42 @@ def _point_rows(model: SparseModel, ids: NDArray[np.uint64],
 def features_from_images(
     model: SparseModel, images: Mapping[str, NDArray[Any]],
     options: TieOptions | RegistrationOptions,
+    extract: Callable[[str], ImageFeatures] | None = None,
 ) -> dict[str, ObservationFeatures]:
     """Re-extract SIFT on model images and tie keypoints to observations with a 3D point.
 
     Each keypoint is tied to the nearest observation (that has a 3D point) of the same
     image within ``tie_radius_px``; several keypoints may tie to one observation (SIFT
-    orientations). Images: name -> (H, W) grey or (H, W, 3) RGB uint8 pixels.
+    orientations). Images: name -> (H, W) grey or (H, W, 3) RGB uint8 pixels. ``extract``:
+    name -> that image's SIFT when something else extracts it (the SIFT worker pool; the
+    caller checks the image sizes, ``images`` is then only read for its names).
     """
     if isinstance(options, RegistrationOptions):
         options = options.tie
     out: dict[str, ObservationFeatures] = {}
     # Progress bar (on a terminal, not with --quiet): re-extraction takes seconds per image.
-    for name, pixels in progress_bar(options.progress, "model image SIFT",
-                                     iterable=images.items(), total=len(images), unit="img"):
+    for name in progress_bar(options.progress, "model image SIFT", iterable=list(images),
+                             total=len(images), unit="img"):
         image = model.image_by_name(name)
         if image is None:
             raise InputError("not an image of the sparse model", path=name)
-        cam = model.cameras[image.camera_id]
-        shape = np.asarray(pixels).shape[:2]
-        if shape != (cam.height, cam.width):
-            raise InputError(
-                f"image is {shape[1]}×{shape[0]} px but its camera is {cam.width}×{cam.height}",
-                path=name,
-            )
-        out[name] = _tie_features(model, image, extract_sift(pixels, options.sift), options)
+        if extract is None:
+            pixels = images[name]
+            check_image_size(model.cameras[image.camera_id], np.asarray(pixels).shape, name)
+            feats = extract_sift(pixels, options.sift)
+        else:
+            feats = extract(name)
+        out[name] = _tie_features(model, image, feats, options)
         logger.info("%s: %d re-extracted keypoints tied to model observations",
                     name, len(out[name].observation_idx))
     return out
+
+
+def check_image_size(camera: Camera, shape: tuple[int, ...], name: str) -> None:
+    """InputError when an image of ``shape`` (H, W, ...) is not its camera's size."""
+    if tuple(shape[:2]) != (camera.height, camera.width):
+        raise InputError(f"image is {shape[1]}×{shape[0]} px but its camera is "
+                         f"{camera.width}×{camera.height}", path=name)
 
 
 def _tie_features(

@@ -99,7 +99,8 @@ class _Worker:
 
 
 class SiftPool:
-    """The laser images' SIFT, shared between this process and ``workers`` processes."""
+    """Images' SIFT (the laser images, or the model's when it is re-extracted), shared
+    between this process and ``workers`` processes."""
 
     def __init__(self, paths: Sequence[Path], options: SiftOptions, workers: int) -> None:
         self._paths = list(paths)
@@ -197,9 +198,9 @@ class SiftPool:
                            type(exc).__name__, w.last_error() or "no error output")
 
     def features(self, path: Path, rgb: Any) -> ImageFeatures:
-        """The features of the image at ``path``: extracted here from ``rgb`` (its pixels)
-        when no worker has taken it, else the worker's, waited for; a worker's exception is
-        raised here."""
+        """The features of the image at ``path``: extracted here from ``rgb`` (its pixels, or
+        a function reading them) when no worker has taken it, else the worker's, waited for;
+        a worker's exception is raised here."""
         index = self._index.get(path)
         if index is None:
             raise ValueError(f"{path} is not one of the pool's images")
@@ -212,8 +213,9 @@ class SiftPool:
             self._delivered.add(index)
             done = None if local else self._results.pop(index)
         if done is None:
+            pixels = rgb() if callable(rgb) else rgb
             t0 = time.perf_counter()
-            feats = extract_sift(rgb, self._options)
+            feats = extract_sift(pixels, self._options)
             self.seconds_here += time.perf_counter() - t0
             return feats
         payload = done[0]
@@ -257,14 +259,22 @@ class SiftPool:
 
 def start_sift_pool(images: Sequence[LaserImage], sift: SiftOptions,
                     options: SiftWorkerOptions) -> SiftPool | None:
-    """A pool for the readable ``images`` when ``plan_workers`` gives workers, else None."""
+    """A pool for the readable laser ``images`` when ``plan_workers`` gives workers, else
+    None."""
     usable = [li for li in images if li.camera is not None]
     pixels = max((li.camera.width * li.camera.height for li in usable if li.camera), default=0)
-    n = plan_workers(len(usable), pixels, available_cpus(), available_memory_bytes(), options)
+    return start_pool([li.path for li in usable], pixels, sift, options, "laser images")
+
+
+def start_pool(paths: Sequence[Path], max_pixels: int, sift: SiftOptions,
+               options: SiftWorkerOptions, what: str) -> SiftPool | None:
+    """A pool for the images at ``paths`` (of at most ``max_pixels``) when ``plan_workers``
+    gives workers, else None."""
+    n = plan_workers(len(paths), max_pixels, available_cpus(), available_memory_bytes(), options)
     if n == 0:
         return None
-    logger.info("SIFT of %d laser images shared with %d worker process(es)", len(usable), n)
-    return SiftPool([li.path for li in usable], sift, n)
+    logger.info("SIFT of %d %s shared with %d worker process(es)", len(paths), what, n)
+    return SiftPool(paths, sift, n)
 
 
 def _picklable(exc: BaseException) -> BaseException:

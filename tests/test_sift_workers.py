@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import subprocess
 import sys
 import time
@@ -20,7 +21,12 @@ from sfm_laserscale.cli import main
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.images import read_rgb
 from sfm_laserscale.provenance import glog_lines, merged_glog
-from sfm_laserscale.registration import ImageFeatures, SiftOptions, extract_sift
+from sfm_laserscale.registration import (
+    ImageFeatures,
+    ObservationFeatures,
+    SiftOptions,
+    extract_sift,
+)
 from sfm_laserscale.sift_workers import (
     SiftPool,
     SiftWorkerOptions,
@@ -253,3 +259,47 @@ def test_merged_glog_orders_processes_by_time() -> None:
     assert merged_glog(here, worker) == [here[0], here[1], worker[0], here[2], worker[1]]
     assert glog_lines("Traceback (most recent call last):\n" + worker[0] + "\nboom\n") == [
         worker[0]]
+
+
+def test_model_images_reextracted_with_workers_are_the_same(
+        small_dataset: Any, caplog: pytest.LogCaptureFixture) -> None:
+    """``--images`` (no database): the model images' SIFT shared with two workers ties the
+    same keypoints to the same observations as extracting it all here."""
+    from sfm_laserscale.io.models import load_model, load_model_features
+    from sfm_laserscale.registration import TieOptions
+
+    model = load_model(small_dataset.model_dir)
+    args = (model, small_dataset.model_dir, None, small_dataset.images_dir, None, TieOptions())
+    here = load_model_features(*args)
+    with caplog.at_level(logging.INFO, logger="sfm_laserscale.sift_workers"):
+        shared = load_model_features(*args, SiftWorkerOptions(workers=2))
+    assert f"SIFT of {len(here)} model images shared with 2 worker" in caplog.text
+    assert list(shared) == list(here)
+    for name, feats in here.items():
+        other = shared[name]
+        assert isinstance(feats, ObservationFeatures) and isinstance(other, ObservationFeatures)
+        np.testing.assert_array_equal(other.observation_idx, feats.observation_idx)
+        np.testing.assert_array_equal(other.descriptors, feats.descriptors)
+
+
+def test_model_image_of_the_wrong_size_is_named_before_any_extraction(
+        small_dataset: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import sfm_laserscale.io.models as models
+    import sfm_laserscale.registration as registration
+    from sfm_laserscale.registration import TieOptions
+
+    images = tmp_path / "images"
+    shutil.copytree(small_dataset.images_dir, images)
+    model = models.load_model(small_dataset.model_dir)
+    victim = images / sorted(im.name for im in model.images.values())[-1]
+    full = cv2.imread(str(victim))
+    cv2.imwrite(str(victim), cv2.resize(full, (full.shape[1] // 2, full.shape[0] // 2)))
+
+    def forbidden(*args: Any, **kwargs: Any) -> Any:
+        raise AssertionError("nothing is extracted before every size is checked")
+
+    monkeypatch.setattr(models, "start_pool", forbidden)
+    monkeypatch.setattr(registration, "extract_sift", forbidden)
+    with pytest.raises(InputError, match=r"image is 320×240 px but its camera is 640×480"):
+        models.load_model_features(model, small_dataset.model_dir, None, images, None,
+                                   TieOptions(), SiftWorkerOptions(workers=1))

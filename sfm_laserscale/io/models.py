@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.colmap import read_colmap_model
 from sfm_laserscale.io.colmap_database import open_database_features, read_database_features
-from sfm_laserscale.io.images import IMAGE_SUFFIXES, read_rgb
+from sfm_laserscale.io.images import IMAGE_SUFFIXES, image_size, read_rgb
 from sfm_laserscale.io.openmvg import (
     find_openmvg_regions_dir,
     openmvg_model_features,
@@ -21,7 +21,13 @@ from sfm_laserscale.io.openmvg import (
     read_openmvg_sfm_data,
 )
 from sfm_laserscale.model import ImageFeatures, SparseModel
-from sfm_laserscale.registration import ObservationFeatures, TieOptions, features_from_images
+from sfm_laserscale.registration import (
+    ObservationFeatures,
+    TieOptions,
+    check_image_size,
+    features_from_images,
+)
+from sfm_laserscale.sift_workers import SiftWorkerOptions, start_pool
 
 logger = logging.getLogger(__name__)
 ModelFeatures = dict[str, ImageFeatures] | dict[str, ObservationFeatures]
@@ -76,6 +82,27 @@ def _source_images(model: SparseModel, images_dir: Path) -> dict[str, Path]:
     return found
 
 
+def _reextracted(model: SparseModel, paths: dict[str, Path], tie: TieOptions,
+                 workers: SiftWorkerOptions | None) -> dict[str, ObservationFeatures]:
+    """SIFT re-extracted on the model's source images and tied to its observations; shared
+    with SIFT worker processes when ``workers`` (and ``plan_workers``) give any."""
+    by_name = {im.name: im for im in model.images.values()}
+    pixels = 0
+    for name, path in paths.items():  # sizes from the headers, before any extraction
+        camera = model.cameras[by_name[name].camera_id]
+        width, height = image_size(path)
+        check_image_size(camera, (height, width), name)
+        pixels = max(pixels, width * height)
+    pool = None if workers is None else start_pool(list(paths.values()), pixels, tie.sift,
+                                                   workers, "model images")
+    if pool is None:
+        return features_from_images(model, LazyImages(paths), tie)
+    with pool:
+        return features_from_images(
+            model, LazyImages(paths), tie,
+            extract=lambda name: pool.features(paths[name], lambda: read_rgb(paths[name])))
+
+
 def load_model_features(
     model: SparseModel,
     model_path: Path,
@@ -83,19 +110,21 @@ def load_model_features(
     images_dir: Path | None,
     features_dir: Path | None,
     tie: TieOptions,
+    workers: SiftWorkerOptions | None = None,
 ) -> ModelFeatures:
     """Descriptors of the model's observations: database (COLMAP) or regions (OpenMVG)
-    first, else SIFT re-extracted."""
+    first, else SIFT re-extracted (``workers``: SIFT worker processes beside this one;
+    None: none)."""
     if model.source_format == "openmvg":
-        return _openmvg_features(model, model_path, database, images_dir, features_dir, tie)
+        return _openmvg_features(model, model_path, database, images_dir, features_dir, tie,
+                                 workers)
     names = [im.name for im in model.images.values()]
     if database is not None:
         feats = read_database_features(database, names)
         logger.info("descriptors of %d model images read from %s", len(feats), database)
         return feats
     if images_dir is not None:
-        paths = _source_images(model, images_dir)
-        return features_from_images(model, LazyImages(paths), tie)
+        return _reextracted(model, _source_images(model, images_dir), tie, workers)
     raise InputError(
         "the model's descriptors are needed: give --database (COLMAP) or --images "
         "(the model's source images, SIFT is re-extracted)"
@@ -110,6 +139,7 @@ def open_model_features(
     images_dir: Path | None,
     features_dir: Path | None,
     tie: TieOptions,
+    workers: SiftWorkerOptions | None = None,
 ) -> Iterator[Mapping[str, ImageFeatures] | Mapping[str, ObservationFeatures]]:
     """``load_model_features`` as a mapping valid inside the ``with`` block: a COLMAP
     database is read one image at a time, on access, so its features are never all held
@@ -117,7 +147,8 @@ def open_model_features(
     # this generator's frame outlives its caller's use of the model: it keeps no reference,
     # so the caller can drop the model's observations while the features are open
     if model.source_format == "openmvg" or database is None:
-        loaded = load_model_features(model, model_path, database, images_dir, features_dir, tie)
+        loaded = load_model_features(model, model_path, database, images_dir, features_dir, tie,
+                                     workers)
         del model
         yield loaded
         return
@@ -136,6 +167,7 @@ def _openmvg_features(
     images_dir: Path | None,
     features_dir: Path | None,
     tie: TieOptions,
+    workers: SiftWorkerOptions | None = None,
 ) -> ModelFeatures:
     """OpenMVG regions (--features, else matches/ found beside sfm_data), else re-extraction."""
     if database is not None:
@@ -152,8 +184,7 @@ def _openmvg_features(
     if images_dir is not None:
         if regions is not None:
             logger.warning("OpenMVG regions in %s are not SIFT: SIFT is re-extracted", regions)
-        paths = _source_images(model, images_dir)
-        return features_from_images(model, LazyImages(paths), tie)
+        return _reextracted(model, _source_images(model, images_dir), tie, workers)
     raise InputError(
         "the model's descriptors are needed: no OpenMVG regions (.feat/.desc) found in "
         "matches/ beside sfm_data.json; give --features DIR or --images", model_path)
