@@ -32,3 +32,24 @@ def test_unreadable_image_is_an_input_error(tmp_path: Path) -> None:
         read_rgb(path)
     with pytest.raises(InputError, match="not a readable image"):
         read_gray(path)
+
+
+@pytest.mark.parametrize("orientation", [3, 6, 8])
+def test_exif_orientation_is_not_applied(tmp_path: Path, orientation: int) -> None:
+    """A JPEG tagged as rotated is read in its stored frame, as COLMAP and OpenMVG read it and
+    as ``image_size`` measures it (OpenCV's default would turn it)."""
+    from PIL import Image
+
+    from sfm_laserscale.io.images import image_size
+
+    stored = np.zeros((40, 64, 3), np.uint8)
+    stored[:, :16] = (255, 255, 255)  # a white band on the left of the stored pixels
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    path = tmp_path / "tagged.jpg"
+    Image.fromarray(stored).save(path, exif=exif.tobytes(), quality=95)
+    assert image_size(path) == (64, 40)
+    rgb, gray = read_rgb(path), read_gray(path)
+    assert rgb.shape == (40, 64, 3) and gray.shape == (40, 64)
+    assert rgb[:, :12].min() > 200 and rgb[:, 20:].max() < 60
+    assert gray[:, :12].min() > 200 and gray[:, 20:].max() < 60
