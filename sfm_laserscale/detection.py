@@ -396,7 +396,9 @@ def _dog_at_scale(resp: F32, sigma: float) -> F32:
     s = sigma / factor
     g1 = cv2.GaussianBlur(small, (0, 0), s, borderType=cv2.BORDER_REFLECT)
     g2 = cv2.GaussianBlur(small, (0, 0), k * s, borderType=cv2.BORDER_REFLECT)
-    dog = (g1 - g2) / np.float32(k - 1.0)
+    dog = np.subtract(g1, g2, out=g1)  # in place (same numbers): one plane less at full size
+    del g2
+    np.divide(dog, np.float32(k - 1.0), out=dog)
     if factor > 1:
         dog = cv2.resize(dog, (resp.shape[1], resp.shape[0]), interpolation=cv2.INTER_LINEAR)
     return np.asarray(dog, dtype=np.float32)
