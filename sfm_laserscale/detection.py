@@ -802,15 +802,15 @@ def _planes(
     laser, other = _laser_and_other(channels, color)
     resp = colour_difference(laser, other, options.saturation_level,
                              4.0 * math.pi * max_radius**2)
-    clipped_any = np.asarray(np.maximum(laser, other) >= options.saturation_level)
+    # the same masks and maximum as np.maximum(laser, other) >= level and np.maximum(resp,
+    # excess), without their (H, W) float32 temporaries
+    clipped_laser = laser >= options.saturation_level
+    clipped_any = clipped_laser | (other >= options.saturation_level)
     if options.response == "background":
-        resp = np.maximum(resp, background_excess(laser, other, options.saturation_level,
-                                                  4.0 * math.pi * max_radius**2))
-    return _Planes(
-        resp=resp, laser=laser, other=other,
-        clipped_laser=np.asarray(laser >= options.saturation_level),
-        clipped_any=clipped_any,
-    )
+        np.maximum(resp, background_excess(laser, other, options.saturation_level,
+                                           4.0 * math.pi * max_radius**2), out=resp)
+    return _Planes(resp=resp, laser=laser, other=other, clipped_laser=clipped_laser,
+                   clipped_any=clipped_any)
 
 
 def _refine(planes: _Planes, m: _Measure, options: DetectionOptions,
