@@ -31,11 +31,11 @@ from typing import Any
 
 import numpy as np
 
+from sfm_laserscale.resources import available_cpus
 from sfm_laserscale.rig import rig_to_toml
 from sfm_laserscale.synthetic.simulate import (
     SimulationInputs,
     SimulationOptions,
-    available_workers,
     config_rig,
     run_simulation,
 )
@@ -89,7 +89,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--runs", nargs="+", choices=list(RUNS), default=list(RUNS))
-    ap.add_argument("--workers", type=int, default=min(2, available_workers()))
+    ap.add_argument("--workers", type=int, default=min(2, available_cpus()))
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     report = {}

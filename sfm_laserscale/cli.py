@@ -329,6 +329,7 @@ class _SimulateCommand(GreedyCommand):
 def simulate(**kw: Any) -> int:
     """The paper's synthetic experiments through the code of `scale`: results.json, table.md,
     trials.csv.gz and figures (errors in % of the true scale, reported sigma vs Monte Carlo)."""
+    from sfm_laserscale.resources import available_cpus
     from sfm_laserscale.synthetic import simulate as sim
 
     options = sim.SimulationOptions(
@@ -338,7 +339,7 @@ def simulate(**kw: Any) -> int:
         outlier_ratio=kw["outliers"], group_size=kw["group_size"],
         max_angle_deg=kw["max_angle"], angle_step_deg=kw["angle_step"],
         camera=sim.pinhole_camera(*kw["camera"]), antithetic=kw["antithetic"],
-        workers=kw["workers"] or sim.available_workers(), seed=kw["seed"],
+        workers=kw["workers"] or available_cpus(), seed=kw["seed"],
         progress=not kw["quiet"])
     result = sim.run_simulation(sim.SimulationInputs(rig=kw["rig"], mesh=kw["mesh"]), kw["out"],
                                 options, overwrite=kw["overwrite"])

@@ -507,14 +507,14 @@ def run_scale(
         trim_heap()
         # the SIFT workers are done: the inputs' SHA-256 for the provenance is computed on
         # the core they leave, beside the rest of the run
-        with digests_in_background(_provenance_inputs(inputs, loaded)) as digests:
+        hashed = _provenance_inputs(inputs, loaded)
+        with digests_in_background(hashed) as digests:
             loaded, runs, fusion, checks = _estimate_all(inputs, loaded, runs, options, timer)
             headline, fused, joint = fusion.headline, fusion.methods, fusion.pcm_joint
             with staged_output_dir(out_dir, overwrite) as tmp, timer("write"):
                 report = build_report(inputs, options, loaded, runs, headline, fused, checks, timer,
                                       pcm_joint=joint)
-                report["provenance"] = provenance(_provenance_inputs(inputs, loaded), options,
-                                                  digests)
+                report["provenance"] = provenance(hashed, options, digests)
                 write_outputs(tmp, inputs, loaded, runs, headline, report, options, timer)
                 logger.info("run finished: %s", report["timings_s"])
                 glog = merged_glog(colmap_log.lines(), worker_glog)

@@ -91,7 +91,6 @@ from sfm_laserscale.raycast import (
     pixel_rays,
 )
 from sfm_laserscale.registration import PoseOptions, estimate_pose
-from sfm_laserscale.resources import available_cpus
 from sfm_laserscale.rig import Rig, rig_from_dict
 from sfm_laserscale.synthetic.dataset import make_rig
 from sfm_laserscale.uncertainty import (
@@ -133,11 +132,6 @@ def pinhole_camera(width: int, height: int, focal_px: float) -> Camera:
 def default_camera() -> Camera:
     """PINHOLE 1920 × 1080, f = 1500 px, principal point at the image centre."""
     return pinhole_camera(1920, 1080, 1500.0)
-
-
-def available_workers() -> int:
-    """CPUs this process may use (the default number of worker processes)."""
-    return available_cpus()
 
 
 # --------------------------------------------------------------------------- configurations
