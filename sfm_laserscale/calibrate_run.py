@@ -68,7 +68,9 @@ class CalibrateOptions:
     rig_name: str = "calibrated laser rig"
     min_images: int = 3
     min_candidate_score: float = 0.25
-    detection: DetectionOptions = field(default_factory=DetectionOptions)
+    # a neutral target: its black/white edges through a spot would read as target-coloured light
+    detection: DetectionOptions = field(
+        default_factory=lambda: DetectionOptions(colour_evidence=False))
     calibration: CalibrationOptions = field(default_factory=CalibrationOptions)
 
     def __post_init__(self) -> None:

@@ -48,7 +48,7 @@ from sfm_laserscale.io.models import load_model
 from sfm_laserscale.io.outputs import staged_output_dir
 from sfm_laserscale.io.spots_csv import write_spots_csv
 from sfm_laserscale.model import CAMERA_MODEL_IDS, Camera, SparseModel, Spot
-from sfm_laserscale.report.overlays import draw_overlay
+from sfm_laserscale.report.overlays import draw_overlay, near_misses
 from sfm_laserscale.rig import Rig, load_rig
 
 logger = logging.getLogger(__name__)
@@ -174,6 +174,10 @@ def _image_record(name: str, res: DetectionResult | None, review: float) -> dict
         "spots": [{"laser": s.laser, "x": s.x, "y": s.y, "score": s.score,
                    "sigma_px": s.sigma_px, "review": s.score < review} for s in res.spots],
         "missing": dict(res.missing),
+        "near_misses": {laser: [{"x": c.x, "y": c.y, "score": c.score, "source": c.source,
+                                 "reason": c.reason, "evidence": dict(c.evidence)}
+                                for c in cands]
+                        for laser, cands in res.near_misses.items()},
         "num_candidates": len(res.candidates),
         "num_valid_candidates": sum(c.score > 0 for c in res.candidates),
     }
@@ -216,7 +220,8 @@ def _write_overlay(path: Path, li: LaserImage, rig: Rig, res: DetectionResult,
     assert li.camera is not None  # callers pass readable images only
     rgb = read_rgb(li.path)
     img = draw_overlay(draw_bands(rgb, li.camera, rig, options), li.camera, rig, res.spots, {},
-                       None, options.min_range_m, options.max_range_m)
+                       None, options.min_range_m, options.max_range_m,
+                       near_misses=near_misses(res))
     f = img.shape[1] / rgb.shape[1]
     for s in res.spots:
         org = (int(s.x * f + 18 * f), int(s.y * f + 30 * f))

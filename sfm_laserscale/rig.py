@@ -16,8 +16,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sfm_laserscale.errors import InputError
+from sfm_laserscale.laser_color import DEFAULT_RGB, NAMED, color_toml, parse_color
 
-COLORS = ("red", "green", "blue", "any")
+#: named laser colours: the camera channel a laser is brightest in, or "any" (search all three);
+#: a rig file may also give a wavelength or an RGB triplet (laser_color.parse_color)
+COLORS = NAMED
 _TOP_KEYS = {"name", "laser", "pair"}
 _LASER_KEYS = {"name", "origin", "direction", "color", "sigma_origin", "sigma_direction"}
 _PAIR_KEYS = {"lasers", "separation"}
@@ -34,9 +37,25 @@ class Laser:
     name: str
     origin: NDArray[np.float64] | None  # (3,) metres, origin[2] == 0
     direction: NDArray[np.float64] | None  # (3,) unit, direction[2] > 0
-    color: str = "any"
+    color: str = "any"  # the channel it is brightest in: red | green | blue | any
     sigma_origin: float = 0.0  # metres, per axis
     sigma_direction: float = 0.0  # radians
+    #: expected linear camera response (R, G, B), max 1; None: the default of ``color``
+    color_rgb: tuple[float, float, float] | None = None
+    #: the colour as the rig file gave it ("green", "532 nm", "[0.1, 1, 0.2]"); None: ``color``
+    color_spec: str | None = None
+
+    @property
+    def expected_rgb(self) -> tuple[float, float, float] | None:
+        """Expected linear camera response of the spot's light (max 1); None for "any"."""
+        if self.color_rgb is not None:
+            return self.color_rgb
+        return DEFAULT_RGB.get(self.color)
+
+    @property
+    def color_label(self) -> str:
+        """The colour as written in the rig file (for messages and reports)."""
+        return self.color_spec or self.color
 
     @property
     def calibrated(self) -> bool:
@@ -138,14 +157,14 @@ def _laser(raw: Any, index: int, path: str) -> Laser:
         raise InputError(f"[[laser]] #{index + 1} needs a non-empty string 'name'", path)
     where = f"laser {name!r}"
     origin, direction = _beam(raw, where, path)
-    color = raw.get("color", "any")
-    if color not in COLORS:
-        raise InputError(f"{where} color must be one of {', '.join(COLORS)}, got {color!r}", path)
+    color, rgb, spec = parse_color(raw.get("color", "any"), where, path)
     return Laser(
         name=name,
         origin=origin,
         direction=direction,
         color=color,
+        color_rgb=rgb,
+        color_spec=spec,
         sigma_origin=_number(raw.get("sigma_origin", 0.0), f"{where} sigma_origin", path),
         sigma_direction=_number(raw.get("sigma_direction", 0.0), f"{where} sigma_direction", path),
     )
@@ -229,7 +248,7 @@ def rig_to_toml(rig: Rig) -> str:
         lines += ["[[laser]]", f'name = "{las.name}"']
         if las.origin is not None and las.direction is not None:
             lines += [f"origin = {fmt(las.origin)}", f"direction = {fmt(las.direction)}"]
-        lines.append(f'color = "{las.color}"')
+        lines.append(f"color = {color_toml(las.color, las.color_spec)}")
         if las.sigma_origin:
             lines.append(f"sigma_origin = {las.sigma_origin:.9g}")
         if las.sigma_direction:

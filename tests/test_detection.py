@@ -468,14 +468,14 @@ def test_clutter_level_measures_texture_not_spots() -> None:
 def test_laser_and_other_planes_decode_then_max_exactly(gamma: float) -> None:
     """Planes made from the uint8 crop (max of the other two channels taken before decoding)
     equal decoding the three channels first, then taking the max: bit for bit."""
-    from sfm_laserscale.detection import CHANNELS, _channels, _laser_and_other
+    from sfm_laserscale.detection.response import CHANNELS, crop_channels, laser_and_other
 
     rng = np.random.default_rng(4)
     rgb = rng.integers(0, 256, (40, 50, 3)).astype(np.uint8)
-    channels = _channels(rgb, (3, 5, 47, 38), gamma)
+    channels = crop_channels(rgb, (3, 5, 47, 38), gamma)
     decoded = ((rgb[5:38, 3:47].astype(np.float64) / 255.0) ** gamma).astype(np.float32)
     for color, c in CHANNELS.items():
-        laser, other = _laser_and_other(channels, color)
+        laser, other = laser_and_other(channels, color)
         o1, o2 = (decoded[..., i] for i in range(3) if i != c)
         assert laser.dtype == other.dtype == np.float32 and laser.shape == (33, 44)
         np.testing.assert_array_equal(laser, decoded[..., c])

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from sfm_laserscale.detection import beam_polyline_px
+from sfm_laserscale.detection import DetectionResult, beam_polyline_px
 from sfm_laserscale.model import Camera, Pose, Spot
 from sfm_laserscale.report.style import INLIER_HEX, WARNING_HEX, hex_to_bgr, laser_color_bgr
 from sfm_laserscale.rig import Rig
@@ -266,6 +266,29 @@ def _draw_spots(
         _label(img, s.laser, box, st.font, color, st.text_thick)
 
 
+#: a near miss: position (COLMAP px) and score (0 when a test rejected it)
+NearMiss = tuple[float, float, float]
+
+
+def _draw_near_misses(img: NDArray[np.uint8], rig: Rig, near: Mapping[str, Sequence[NearMiss]],
+                      f: float, st: _Style) -> None:
+    """The best candidates in the band of each laser without a spot: an open square in the
+    laser's colour and the candidate's score (×: a test rejected it)."""
+    half = 0.6 * st.circle
+    for name, cands in near.items():
+        color = laser_color_bgr(rig.names.index(name)) if name in rig.names else _WHITE
+        for x, y, score in cands:
+            cx, cy = x * f - 0.5, y * f - 0.5
+            p0 = (int(round(cx - half)), int(round(cy - half)))
+            p1 = (int(round(cx + half)), int(round(cy + half)))
+            cv2.rectangle(img, p0, p1, _BLACK, st.line + 2, cv2.LINE_AA)
+            cv2.rectangle(img, p0, p1, color, max(1, st.line - 1), cv2.LINE_AA)
+            text = f"{name}? {score:.2f}" if score > 0 else f"{name}? x"
+            org = (int(round(cx + half + 4)), int(round(cy - half)))
+            for c, thick in ((_BLACK, st.text_thick + 2), (color, st.text_thick)):
+                cv2.putText(img, text, org, _FONT, 0.6 * st.font, c, thick, cv2.LINE_AA)
+
+
 def _legend_entries(
     rig: Rig,
     spots: Sequence[Spot],
@@ -273,6 +296,7 @@ def _legend_entries(
     rejected: Mapping[str, str],
     n_inliers: int | None,
     pose_rejected: bool = False,
+    near: Mapping[str, Sequence[NearMiss]] | None = None,
 ) -> list[tuple[str, tuple[int, int, int], str]]:
     """(kind, colour, text) per legend box: one per laser, then inliers and beams."""
     seen = {s.laser for s in spots}
@@ -284,6 +308,8 @@ def _legend_entries(
             out.append(("spot", laser_color_bgr(i), f"{name} s={scales[name]:.6g}"))
         elif name in seen:
             out.append(("spot", laser_color_bgr(i), f"{name} no FCM"))
+        elif near and near.get(name):
+            out.append(("square", laser_color_bgr(i), f"{name} not found: best candidates"))
         else:
             out.append(("spot", laser_color_bgr(i), f"{name} not found"))
     if n_inliers is not None and pose_rejected:
@@ -319,6 +345,10 @@ def _legend_strip(
             cv2.circle(strip, (cx, cy), int(st.circle * 0.75), color, -1, cv2.LINE_AA)
         elif kind == "dot":
             cv2.circle(strip, (cx, cy), max(2, int(st.dot * 1.5)), color, -1, cv2.LINE_AA)
+        elif kind == "square":
+            r = int(st.circle * 0.6)
+            cv2.rectangle(strip, (cx - r, cy - r), (cx + r, cy + r), color, max(1, st.line - 1),
+                          cv2.LINE_AA)
         else:
             cv2.line(
                 strip, (int(x0), cy), (int(x0 + 1.6 * st.circle), cy), color, st.line, cv2.LINE_AA
@@ -327,6 +357,14 @@ def _legend_strip(
         text_color = _LIGHT_RED if color == _RED else _TEXT
         cv2.putText(strip, text, org, _FONT, scale, text_color, st.text_thick, cv2.LINE_AA)
     return strip
+
+
+def near_misses(result: DetectionResult | None) -> dict[str, list[NearMiss]]:
+    """Laser without a spot -> its best candidates (x, y, score) from a detection result."""
+    if result is None:
+        return {}
+    return {name: [(c.x, c.y, c.score) for c in cands]
+            for name, cands in result.near_misses.items() if cands}
 
 
 def draw_overlay(
@@ -343,6 +381,7 @@ def draw_overlay(
     min_side: int = 1200,
     rejected: Mapping[str, str] | None = None,
     pose_rejected: bool = False,
+    near_misses: Mapping[str, Sequence[NearMiss]] | None = None,
 ) -> NDArray[np.uint8]:
     """(H', W' + legend, 3) BGR overlay: the photo resized so its longer side lies in
     [``min_side``, ``max_side``], annotated, with a legend strip below it.
@@ -350,7 +389,8 @@ def draw_overlay(
     ``inliers_xy``: (K, 2) COLMAP pixels of the registration's points (green): the model points
     used, reprojected (:func:`reprojected_points`); with ``pose_rejected`` the keypoints of a
     rejected pose (red). ``scales``: FCM scale per laser for the legend; ``rejected``: laser ->
-    reason (drawn red).
+    reason (drawn red); ``near_misses``: laser without a spot -> its best candidates (x, y,
+    score), drawn as open squares with their score.
     """
     rejected = rejected or {}
     img, f = _resize(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), min_side, max_side)
@@ -359,7 +399,9 @@ def draw_overlay(
         _draw_inliers(img, inliers_xy, f, st, _RED if pose_rejected else _INLIER)
     lines = _draw_beams(img, camera, rig, f, st, min_range_m, max_range_m)
     _draw_spots(img, rig, spots, f, st, rejected, lines)
+    if near_misses:
+        _draw_near_misses(img, rig, near_misses, f, st)
     n_in = None if inliers_xy is None else int(np.asarray(inliers_xy).reshape(-1, 2).shape[0])
-    entries = _legend_entries(rig, spots, scales, rejected, n_in, pose_rejected)
+    entries = _legend_entries(rig, spots, scales, rejected, n_in, pose_rejected, near_misses)
     strip = _legend_strip(entries, img.shape[1], st)
     return np.vstack([img, strip])

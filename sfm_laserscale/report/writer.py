@@ -27,7 +27,7 @@ from sfm_laserscale.io.transforms import write_matrix_4x4, write_sim3
 from sfm_laserscale.provenance import progress_bar
 from sfm_laserscale.report.analysis import ReportChecksOptions, annotate
 from sfm_laserscale.report.html import render_html
-from sfm_laserscale.report.overlays import draw_overlay, reprojected_points
+from sfm_laserscale.report.overlays import draw_overlay, near_misses, reprojected_points
 from sfm_laserscale.report.validate import check_html
 
 if TYPE_CHECKING:
@@ -316,6 +316,7 @@ def _write_overlays(
             options.detection.max_range_m,
             rejected=rejected,
             pose_rejected=pose_rejected,
+            near_misses=near_misses(run.detection),
         )
         name = _overlay_name(run.name, set(written.values()))
         cv2.imwrite(str(folder / name), img, [cv2.IMWRITE_JPEG_QUALITY, 88])

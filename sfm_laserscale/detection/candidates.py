@@ -1,0 +1,258 @@
+"""Candidates of one laser colour: local maxima of its responses, measured, refined and scored.
+
+For each response (:mod:`.response`: the colour response, and the brightness response where the
+laser channel clips) the local maxima of its multi-scale DoG above a noise-relative threshold
+are taken strongest first. Maxima outside every beam band, below ``min_clutter_ratio`` × the
+scene's clutter level, beyond ``max_candidates`` or repeating a stronger candidate are listed
+with that reason and not measured. The others are measured (:mod:`.shape`), refined
+(:mod:`.refine`) and get their evidence (:mod:`.score`); hard tests (no contrast, too large,
+not compact, weak, refinement failed) reject a candidate with a reason, everything else is
+evidence in its score. Overlapping spots are refined again with each other's light removed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from sfm_laserscale.detection.beams import SearchRegion
+from sfm_laserscale.detection.options import DetectionOptions
+from sfm_laserscale.detection.refine import (
+    NeighbourModel,
+    SpotGuess,
+    neighbour_model,
+    refine_spot,
+    spot_patch,
+)
+from sfm_laserscale.detection.response import (
+    Channels,
+    Planes,
+    blob_response,
+    brightness,
+    clutter_level,
+    local_maxima,
+    make_planes,
+    robust_std,
+)
+from sfm_laserscale.detection.score import (
+    ColourEvidence,
+    added_light,
+    clutter_term,
+    colour_evidence,
+    contrast_term,
+)
+from sfm_laserscale.detection.shape import TOO_LARGE, Blob, shape_and_contrast
+
+F32 = NDArray[np.float32]
+
+
+@dataclass
+class Measure:
+    """Mutable per-candidate working record (crop, then image COLMAP px once finished)."""
+
+    x: float
+    y: float
+    color: str
+    source: str  # "colour" | "bright"
+    response: float
+    clutter_ratio: float = math.inf
+    snr: float = 0.0
+    radius_px: float = 0.0
+    roundness: float = 0.0
+    support_px: float = 0.0
+    bright: bool = False  # refined on the brightness signal (its laser channel clips)
+    sigma_px: float = 1.0
+    colour: ColourEvidence = field(default_factory=lambda: ColourEvidence(0.5))
+    terms: dict[str, float] = field(default_factory=dict)  # evidence without colour and beam
+    rejected: str | None = None
+    score: float = 0.0
+    laser: str | None = None
+    reason: str = ""
+    evidence: dict[str, float] = field(default_factory=dict)  # final, for the chosen laser
+
+    @property
+    def base_score(self) -> float:
+        """Product of the colour- and beam-free evidence terms."""
+        return float(np.prod(list(self.terms.values()))) if self.terms else 0.0
+
+    def guess(self) -> SpotGuess:
+        """The refinement's view of this candidate."""
+        return SpotGuess(self.x, self.y, self.radius_px, self.support_px, self.bright)
+
+
+@dataclass(frozen=True)
+class _Source:
+    """One response's DoG and what it is judged against."""
+
+    name: str
+    plane: F32  # the response (crop)
+    dog: F32
+    threshold: float
+    clutter: float
+    where: NDArray[np.bool_] | None  # maxima allowed only here (None: everywhere)
+
+
+def _source(name: str, plane: F32, options: DetectionOptions,
+            where: NDArray[np.bool_] | None = None) -> _Source:
+    dog = blob_response(plane, options.spot_sigmas_px)
+    threshold = max(4.0 * robust_std(dog[::4, ::4]), 4.0 / 255.0)
+    return _Source(name, plane, dog, threshold, clutter_level(dog), where)
+
+
+def _sources(channels: Channels, planes: Planes, options: DetectionOptions,
+             region: SearchRegion) -> list[_Source]:
+    """The colour response, and the brightness response where the laser channel clips."""
+    out = [_source("colour", planes.resp, options)]
+    clipped = planes.clipped_laser if region.near is None else planes.clipped_laser & region.near
+    if clipped.any():
+        near_clip = cv2.dilate(clipped.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        out.append(_source("bright", brightness(channels), options, near_clip))
+    return out
+
+
+def _covering(out: list[Measure], x: float, y: float) -> str | None:
+    """Why a maximum at (x, y) repeats an earlier one: inside a too-large blob or a spot."""
+    for o in out:
+        d = math.hypot(o.x - x, o.y - y)
+        if o.rejected is None and d < max(2.0, o.radius_px):
+            return f"duplicate of the stronger maximum at ({o.x:.1f}, {o.y:.1f})"
+        if o.rejected is not None and o.rejected.startswith(TOO_LARGE) and d < o.radius_px:
+            return f"part of the too-large blob at ({o.x:.1f}, {o.y:.1f})"
+    return None
+
+
+def _bright_candidate(src: _Source, rc: tuple[int, int], region: SearchRegion) -> bool:
+    """A maximum of the brightness response near a band where the laser channel clips."""
+    row, col = rc
+    near = region.near is None or bool(region.near[row, col])
+    return near and (src.where is None or bool(src.where[row, col]))
+
+
+def _unmeasured_reason(m: Measure, rc: tuple[int, int], src: _Source, region: SearchRegion,
+                       n_valid: int, options: DetectionOptions) -> str | None:
+    """Why a maximum is listed but not measured, or None."""
+    row, col = rc
+    if region.near is not None and not region.near[row, col]:
+        return "off every beam band (not measured)"
+    if m.response < options.min_clutter_ratio * src.clutter:
+        return (f"no stronger than the scene's own blobs (response {m.clutter_ratio:.2f} × "
+                f"clutter level; not measured)")
+    if n_valid >= options.max_candidates:
+        return f"beyond the {options.max_candidates} strongest maxima (not measured)"
+    return None
+
+
+def _shape(m: Measure, plane: F32, bright_plane: F32 | None, planes: Planes,
+           rc: tuple[int, int], options: DetectionOptions, max_radius: float) -> Blob:
+    """Shape of a maximum on its own response; a blob whose laser channel clips and that fails
+    there (a colour response flat over a wide clipped halo) is measured on the brightness."""
+    row, col = rc
+    blob = shape_and_contrast(plane, row, col, max_radius, options.max_annulus_ratio)
+    core = planes.clipped_laser[max(0, row - 2):row + 3, max(0, col - 2):col + 3]
+    m.bright = bool(core.any())
+    if blob.rejection is None or not m.bright or bright_plane is None or plane is bright_plane:
+        return blob
+    return shape_and_contrast(bright_plane, row, col, max_radius, options.max_annulus_ratio)
+
+
+def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
+             rc: tuple[int, int], options: DetectionOptions, max_radius: float) -> None:
+    """In place: shape, refinement, added light and evidence terms of one maximum."""
+    blob = _shape(m, plane, bright_plane, planes, rc, options, max_radius)
+    m.radius_px, m.roundness, m.snr, m.support_px = (blob.radius, blob.roundness, blob.snr,
+                                                     blob.support)
+    m.rejected = blob.rejection
+    if m.rejected is None and m.snr < options.min_snr:
+        m.rejected = f"weak (SNR {m.snr:.1f} < {options.min_snr:g})"
+    if m.rejected is not None:
+        return
+    x, y, sig = refine_spot(planes, m.guess(), options.refine)
+    if not (math.isfinite(sig) and math.hypot(x - m.x, y - m.y) <= max(2.0, m.radius_px)):
+        m.rejected = "sub-pixel refinement failed"
+        return
+    m.x, m.y = x, y
+    m.sigma_px = math.hypot(sig, options.sigma_floor_px)
+    if options.colour_evidence:
+        light = added_light(planes.channels, planes.clipped_any, x, y, m.radius_px,
+                            m.support_px, planes.laser_rgb)
+        m.colour = colour_evidence(light, options.colour_tau)
+    else:
+        m.colour = ColourEvidence(1.0)
+    m.terms = {"contrast": contrast_term(m.snr, options.snr_half),
+               "roundness": math.sqrt(max(m.roundness, 0.0)),
+               "clutter": clutter_term(m.clutter_ratio, options.clutter_half)}
+
+
+def candidates_for_colour(
+    channels: Channels, color: str, options: DetectionOptions, region: SearchRegion,
+    laser_rgb: tuple[float, float, float],
+) -> list[Measure]:
+    """Local maxima of one colour's responses, measured and refined (image COLMAP px).
+
+    ``laser_rgb``: the expected colour of this channel's lasers (the refinement separates
+    their light from the scene's texture with it).
+    """
+    planes = make_planes(channels, color, options, region.max_radius, laser_rgb)
+    sources = _sources(channels, planes, options, region)
+    bright_plane = sources[-1].plane if sources[-1].name == "bright" else None
+    out: list[Measure] = []
+    for src in sources:
+        n_valid = 0
+        for row, col in local_maxima(src.dog, src.threshold)[: 4 * options.max_candidates]:
+            rc = (int(row), int(col))
+            if src.name == "bright" and not _bright_candidate(src, rc, region):
+                continue  # the brightness response proposes clipped blobs in the bands only
+            value = float(src.dog[row, col])
+            m = Measure(x=col + 0.5, y=row + 0.5, color=color, source=src.name, response=value,
+                        clutter_ratio=value / src.clutter if src.clutter > 0 else math.inf)
+            m.rejected = (_unmeasured_reason(m, rc, src, region, n_valid, options)
+                          or _covering(out, m.x, m.y))
+            if m.rejected is None:
+                _measure(planes, m, src.plane, bright_plane, rc, options, region.max_radius)
+                m.rejected = m.rejected or _covering(out, m.x, m.y)
+                n_valid += m.rejected is None
+            if src.name == "bright" and m.rejected is not None and m.rejected.startswith("dup"):
+                continue  # a colour candidate already stands there
+            out.append(m)
+    separate_overlapping(planes, [m for m in out if m.rejected is None], options)
+    x0, y0 = region.roi[:2]
+    for m in out:  # crop -> image coordinates
+        m.x += x0
+        m.y += y0
+    return out
+
+
+def separate_overlapping(planes: Planes, valid: list[Measure], options: DetectionOptions,
+                         rounds: int = 3) -> None:
+    """In place: re-refine spots whose supports overlap, each with its neighbours' light
+    (modelled from their far sides, :func:`neighbour_model`) removed. Alternating rounds."""
+    support = [m.guess().patch_support for m in valid]
+    groups = {i: [j for j, o in enumerate(valid) if j != i and
+                  math.hypot(o.x - m.x, o.y - m.y) < support[i] + support[j]]
+              for i, m in enumerate(valid)}
+    if not any(groups.values()):
+        return
+    models: dict[tuple[int, int], NeighbourModel] = {}  # (spot, for whom) -> model
+    for _ in range(rounds):
+        fresh: dict[tuple[int, int], NeighbourModel] = {}
+        for j, nbs in groups.items():  # model of spot j as seen by each neighbour i
+            o = valid[j]
+            for i in nbs:
+                others = tuple(models[(k, j)] for k in groups[j] if (k, j) in models)
+                p = spot_patch(planes, o.guess(), support[j], others)
+                if p is not None:
+                    fresh[(j, i)] = neighbour_model(p, o.x, o.y, (valid[i].x, valid[i].y))
+        models = fresh
+        for i, nbs in groups.items():
+            m = valid[i]
+            mine = tuple(models[(j, i)] for j in nbs if (j, i) in models)
+            if not mine:
+                continue
+            x, y, sig = refine_spot(planes, m.guess(), options.refine, mine)
+            if math.isfinite(sig) and math.hypot(x - m.x, y - m.y) <= max(2.0, m.radius_px):
+                m.x, m.y = x, y
+                m.sigma_px = math.hypot(sig, options.sigma_floor_px)

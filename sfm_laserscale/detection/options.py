@@ -1,0 +1,142 @@
+"""Settings and results of spot detection (lengths in pixels unless named otherwise)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from sfm_laserscale.errors import InputError
+from sfm_laserscale.model import Spot
+
+
+@dataclass(frozen=True)
+class DetectionOptions:
+    """Settings of :func:`sfm_laserscale.detection.detect_spots`.
+
+    Where to look:
+
+    - ``min_range_m``/``max_range_m``: part of each beam (metres from its origin along the beam)
+      where spots are searched; its projection is the beam's image segment.
+    - ``band_px``: max distance of a spot centre from its beam segment; None = 3 px + 0.5 % of
+      the image diagonal (≈ 14 px at 1920×1080), to absorb calibration error.
+
+    What a candidate is:
+
+    - ``spot_sigmas_px``: blob scales (Gaussian sigma) searched by the DoG.
+    - ``max_spot_radius_px``: larger half-maximum radius = not a spot; None = 1.5 % of the
+      diagonal (≈ 33 px at 1920×1080).
+    - ``min_snr``: peak contrast over the local background noise, below which a blob is no
+      candidate.
+    - ``max_annulus_ratio``: compactness; the 75th percentile of the response in a ring around
+      the spot, relative to its peak contrast, must stay below this.
+    - ``min_clutter_ratio``: maxima whose blob response is below this many times the scene's
+      *clutter level* (the 99th percentile of the response at all its local maxima in the
+      searched region, :func:`clutter_level`) are listed, not measured. 0 measures them all.
+    - ``saturation_level``: channel value (0–1) above which a pixel counts as clipped.
+    - ``max_candidates``: strongest local maxima measured per colour and response.
+    - ``input_gamma``: pixel values are decoded as ``(v / 255) ** input_gamma`` before anything
+      else (2.2 for gamma-encoded camera JPEGs, 1.0 for linear images).
+    - ``response``: "background" (default: the laser channel relative to the local background
+      colour, and the plain colour difference; see :mod:`.response`) or "difference" (the plain
+      colour difference only).
+
+    How a candidate scores (the evidence multiplies, see :mod:`.score`):
+
+    - ``snr_half``: SNR at which the contrast term is 0.5.
+    - ``clutter_half``: blob response, in clutter levels, at which the clutter term is 0.5.
+    - ``colour_tau``: width of the colour evidence: the term is the logistic of
+      (laser-coloured share of the light a candidate adds − ½) / tau.
+    - ``colour_evidence``: False leaves colour out of the score (a neutral calibration target,
+      whose black/white edges through a spot look like light of the target's colour).
+    - ``min_score``: an assigned spot with a lower score is reported in ``missing`` instead.
+
+    Sub-pixel centre:
+
+    - ``refine``: "centroid" (Gaussian-windowed centroid iterated to its fixed point, the
+      default) or "gaussian" (2D Gaussian fit to the unclipped pixels). Spots cut by the image
+      border always use the fit.
+    - ``sigma_floor_px``: floor of the reported localisation sigma (model error).
+    """
+
+    min_range_m: float = 0.5
+    max_range_m: float = 10.0
+    band_px: float | None = None
+    spot_sigmas_px: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0)
+    max_spot_radius_px: float | None = None
+    min_snr: float = 6.0
+    max_annulus_ratio: float = 0.5
+    min_clutter_ratio: float = 5.0
+    saturation_level: float = 250.0 / 255.0
+    max_candidates: int = 100
+    input_gamma: float = 2.2
+    response: str = "background"
+    snr_half: float = 10.0
+    clutter_half: float = 3.0
+    colour_tau: float = 0.12
+    colour_evidence: bool = True
+    min_score: float = 0.25
+    refine: str = "centroid"
+    sigma_floor_px: float = 0.05
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.min_range_m < self.max_range_m:
+            raise InputError(f"detection range must satisfy 0 < min < max, got "
+                             f"{self.min_range_m:g}..{self.max_range_m:g} m")
+        if not self.input_gamma > 0:
+            raise InputError(f"input_gamma must be positive, got {self.input_gamma}")
+        if self.response not in ("background", "difference"):
+            raise InputError(f"response must be 'background' or 'difference', got "
+                             f"{self.response!r}")
+        if self.refine not in ("centroid", "gaussian"):
+            raise InputError(f"refine must be 'centroid' or 'gaussian', got {self.refine!r}")
+        for name in ("min_clutter_ratio",):
+            if not getattr(self, name) >= 0:
+                raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("snr_half", "clutter_half", "colour_tau"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"{name} must be positive, got {getattr(self, name)}")
+        if not self.spot_sigmas_px or min(self.spot_sigmas_px) <= 0:
+            raise InputError("spot_sigmas_px must be positive")
+        for name in ("band_px", "max_spot_radius_px"):
+            value = getattr(self, name)
+            if value is not None and value <= 0:
+                raise InputError(f"{name} must be positive, got {value}")
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One local maximum of a response, as measured, and what became of it.
+
+    ``x``/``y``: refined centre (COLMAP convention). ``color``: the channel searched.
+    ``source``: the response it came from, "colour" (the laser's colour over the background) or
+    "bright" (a compact bright blob whose laser channel clips, whatever its hue).
+    ``response``: its blob (DoG) value; ``clutter_ratio``: that value in clutter levels of the
+    scene (:func:`~sfm_laserscale.detection.response.clutter_level`). ``score``: the product
+    of the evidence terms in ``evidence`` (name -> value in 0–1: contrast, roundness, clutter,
+    colour, beam) of the nearest admissible laser (0 when a test rejected it). ``laser``: the
+    laser it was assigned to, or None. ``reason``: "assigned to L1", or the test it failed.
+    """
+
+    x: float
+    y: float
+    color: str
+    response: float
+    snr: float
+    radius_px: float
+    roundness: float
+    score: float
+    laser: str | None
+    reason: str
+    source: str = "colour"
+    evidence: tuple[tuple[str, float], ...] = ()
+    clutter_ratio: float = float("inf")
+
+
+@dataclass(frozen=True)
+class DetectionResult:
+    """Assigned spots, every candidate considered, lasers without a spot (name -> reason) and,
+    for each of those, the best candidates in its band (``near_misses``, named in the reason)."""
+
+    spots: tuple[Spot, ...]
+    candidates: tuple[Candidate, ...]
+    missing: dict[str, str] = field(default_factory=dict)
+    near_misses: dict[str, tuple[Candidate, ...]] = field(default_factory=dict)

@@ -1,0 +1,353 @@
+"""Sub-pixel spot centres (COLMAP pixel convention) and their localisation sigma.
+
+A spot is refined on a signal free of background and texture, in a window around its
+candidate position:
+
+- a coloured spot: the laser channel minus its local linear prediction from the (smoothed)
+  other channels and a plane, fitted on a ring outside the spot's support, so the scene texture
+  (present in every channel) cancels;
+- a bright spot (its laser channel clips): the mean of the three channels minus a plane fitted
+  on the ring; it rises monotonically to the core in every channel, where the laser channel
+  alone may dip (JPEG's chroma subsampling) or be flat over a wide clipped halo.
+
+Pixels where any channel clips inside the support are set to the highest unclipped value
+there (a flat top). The centre is a Gaussian-windowed centroid iterated to its fixed point
+(unbiased for any point-symmetric spot, saturated or not) or, optionally and for spots cut by
+the image border, a 2D Gaussian fit to the unclipped pixels. Overlapping spots are refined
+with each other's modelled light removed (:class:`NeighbourModel`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+from scipy.optimize import least_squares
+
+from sfm_laserscale.detection.response import Planes, robust_std
+
+F64 = NDArray[np.float64]
+
+
+def window(shape: tuple[int, ...], row: int, col: int, radius: int) -> tuple[slice, slice]:
+    """Slices of the (2 radius + 1)² window around (row, col), clipped to the image."""
+    return (slice(max(0, row - radius), min(shape[0], row + radius + 1)),
+            slice(max(0, col - radius), min(shape[1], col + radius + 1)))
+
+
+def grid(win: tuple[slice, slice]) -> tuple[F64, F64]:
+    """Pixel-centre coordinates (x, y) of a window, COLMAP convention (centre = index + 0.5)."""
+    ys = np.arange(win[0].start, win[0].stop, dtype=np.float64) + 0.5
+    xs = np.arange(win[1].start, win[1].stop, dtype=np.float64) + 0.5
+    gx, gy = np.meshgrid(xs, ys)
+    return gx, gy
+
+
+@dataclass(frozen=True)
+class SpotGuess:
+    """A candidate to refine: position (crop COLMAP px), half-max radius and support radius
+    (px), and whether it is refined on the brightness signal (its laser channel clips)."""
+
+    x: float
+    y: float
+    radius_px: float
+    support_px: float
+    bright: bool = False
+
+    @property
+    def patch_support(self) -> float:
+        """Support radius of the refinement window (at least 3 half-max radii)."""
+        return max(self.support_px, 3.0 * max(1.0, self.radius_px))
+
+
+@dataclass(frozen=True)
+class SpotPatch:
+    """Background- and texture-free spot signal in a window around one candidate.
+
+    ``gx``/``gy``: pixel centres (COLMAP convention); ``signal``: see the module docstring, with
+    clipped pixels inside the support set to the highest unclipped value there (a flat top);
+    ``usable``: no channel clipped; ``noise``: robust std of the signal on the background
+    ring; ``support_px``: radius of the spot support.
+    """
+
+    gx: F64
+    gy: F64
+    signal: F64
+    usable: NDArray[np.bool_]
+    noise: float
+    support_px: float
+    cut: bool  # the support disc is cut by the image border
+
+
+def _plane_residual(value: F64, gx: F64, gy: F64, ring: NDArray[np.bool_]) -> F64:
+    """``value`` minus a plane fitted on ``ring`` (least squares, one 3-sigma trim)."""
+    x_c, y_c = float(gx.mean()), float(gy.mean())
+    A = np.column_stack([np.ones(ring.sum()), gx[ring] - x_c, gy[ring] - y_c])
+    b = value[ring]
+    keep = np.ones(len(b), dtype=bool)
+    coef = np.zeros(3)
+    for _ in range(2):
+        coef = np.linalg.lstsq(A[keep], b[keep], rcond=None)[0]
+        res = b - A @ coef
+        keep = np.abs(res) <= 3.0 * max(robust_std(res), 1e-6)
+        if keep.sum() < 6:
+            break
+    return np.asarray(value - (coef[0] + coef[1] * (gx - x_c) + coef[2] * (gy - y_c)))
+
+
+def texture_direction(ring_rgb: F64, laser_rgb: F64) -> F64:
+    """(3,) unit colour along which the scene's texture varies in a ring of (n, 3) pixels.
+
+    Reflectance changes scale the light the scene reflects, so its texture moves along the
+    scene's own colour: the first principal axis of the ring's colours when it dominates
+    (variance TEXTURE_DOMINANCE × the next) and lies well away from the laser's colour (a
+    spot's halo reaching into the ring varies along the laser's colour), else the ring's mean
+    colour.
+    """
+    mean = ring_rgb.mean(axis=0)
+    centred = ring_rgb - mean
+    cov = centred.T @ centred / max(len(ring_rgb) - 1, 1)
+    values, vectors = np.linalg.eigh(cov)
+    axis = vectors[:, -1] * (1.0 if vectors[:, -1].sum() >= 0 else -1.0)
+    laser_u = laser_rgb / max(float(np.linalg.norm(laser_rgb)), 1e-12)
+    textured = values[-1] > TEXTURE_DOMINANCE * max(values[-2], 0.0) and values[-1] > 1e-10
+    if not textured or abs(float(axis @ laser_u)) > math.cos(math.radians(MIN_AXIS_TO_LASER_DEG)):
+        axis = mean
+    return np.asarray(axis / max(float(np.linalg.norm(axis)), 1e-12))
+
+
+#: a ring's colours vary along one texture axis when its variance is this many times the next
+TEXTURE_DOMINANCE = 4.0
+#: a texture axis closer than this to the laser's colour is the spot's own halo (degrees)
+MIN_AXIS_TO_LASER_DEG = 30.0
+#: a subset of channels (some clipped) measures laser light only when its noise gain (norm of
+#: the projection over its response) is at most this many times that of all three channels
+MAX_SUBSET_GAIN = 16.0
+
+
+def spot_light(rgb: F64, clipped: NDArray[np.bool_], ring: NDArray[np.bool_],
+               laser_rgb: F64) -> tuple[F64, NDArray[np.bool_]]:
+    """(h, w) laser light per pixel, free of texture, and where it is undetermined.
+
+    At each pixel the unclipped channels are projected on the part of the laser's colour that
+    is orthogonal to the texture colour (:func:`texture_direction`), scaled to unit response
+    to the laser's light: texture cancels, laser light of any strength is measured in the same
+    units whichever channels clipped. A pixel with fewer than two unclipped channels (or whose
+    unclipped channels cannot separate the two colours) is undetermined.
+    """
+    texture = texture_direction(rgb[ring], laser_rgb)
+    keys = (~clipped) @ np.array([1, 2, 4])  # (h, w): which channels are unclipped
+    out = np.zeros(rgb.shape[:2])
+    undetermined = np.ones(rgb.shape[:2], dtype=bool)
+    full = _projection(laser_rgb, texture)
+    if full is None:
+        return out, undetermined
+    for key in np.unique(keys):
+        idx = [k for k in range(3) if key & (1 << k)]
+        w = _projection(laser_rgb[idx], texture[idx]) if len(idx) >= 2 else None
+        if w is None or _noise_gain(w) > MAX_SUBSET_GAIN * _noise_gain(full):
+            continue
+        sel = keys == key
+        out[sel] = rgb[sel][:, idx] @ w
+        undetermined[sel] = False
+    return out, undetermined
+
+
+def _projection(laser: F64, texture: F64) -> F64 | None:
+    """Weights measuring laser light in unit response, blind to the texture colour (None when
+    the two colours coincide)."""
+    t2 = float(texture @ texture)
+    w = laser - (laser @ texture) / t2 * texture if t2 > 1e-12 else laser
+    gain = float(w @ laser)
+    if gain <= 1e-6 * float(laser @ laser):
+        return None
+    return np.asarray(w / gain)
+
+
+def _noise_gain(w: F64) -> float:
+    return float(np.linalg.norm(w))
+
+
+def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
+               neighbours: tuple[NeighbourModel, ...] = ()) -> SpotPatch | None:
+    """The spot signal around a guess (crop COLMAP px); None with too little background.
+
+    ``neighbours``: overlapping spots whose modelled light is removed first (so neither the
+    background fit on the ring nor the centroid sees their halo).
+    """
+    x0, y0 = guess.x, guess.y
+    radius = int(math.ceil(support_px)) + 4
+    win = window(planes.laser.shape, int(math.floor(y0)), int(math.floor(x0)), radius)
+    gx, gy = grid(win)
+    rr = np.hypot(gx - x0, gy - y0)
+    rgb = planes.channels.linear(win)
+    clipped3 = rgb >= planes.saturation_level
+    clipped = np.asarray(clipped3.any(axis=2), dtype=bool)
+    ring = (rr >= support_px) & ~clipped
+    if ring.sum() < 8:
+        return None
+    value, undetermined = spot_light(rgb, clipped3, ring, planes.laser_rgb)
+    for nb in neighbours:
+        value = value - nb.at(gx, gy)
+    sig = _plane_residual(value, gx, gy, ring)
+    inner = rr < support_px
+    top = inner & undetermined
+    if top.any():
+        ok = inner & ~undetermined
+        sig[top] = float(sig[ok].max()) if ok.any() else float(sig.max())
+    h, w = planes.laser.shape
+    cut = bool(x0 - support_px < 0 or y0 - support_px < 0 or x0 + support_px > w
+               or y0 + support_px > h)
+    return SpotPatch(gx=gx, gy=gy, signal=sig, usable=~clipped, noise=robust_std(sig[ring]),
+                     support_px=support_px, cut=cut)
+
+
+@dataclass(frozen=True)
+class NeighbourModel:
+    """Radially symmetric model of a spot's texture-free light (for overlapping spots).
+
+    ``profile[i]``: mean signal at radius i + 0.5 px from (x, y), measured on the spot's side
+    facing away from the neighbour it is modelled for (where that neighbour adds nothing).
+    """
+
+    x: float
+    y: float
+    profile: F64
+
+    def at(self, gx: F64, gy: F64) -> F64:
+        """The modelled light at pixel centres (gx, gy); 0 beyond the profile."""
+        r = np.hypot(gx - self.x, gy - self.y)
+        centres = np.arange(len(self.profile)) + 0.5
+        return np.asarray(np.interp(r, centres, self.profile, right=0.0), dtype=np.float64)
+
+
+def neighbour_model(patch: SpotPatch, x: float, y: float, away_from: tuple[float, float]
+                    ) -> NeighbourModel:
+    """:class:`NeighbourModel` of the spot at (x, y) from the half of its patch facing away
+    from ``away_from`` (the spot being refined), clipped at zero, ending at the support."""
+    ux, uy = x - away_from[0], y - away_from[1]
+    away = ((patch.gx - x) * ux + (patch.gy - y) * uy) > 0
+    r = np.hypot(patch.gx - x, patch.gy - y)
+    keep = away & (r < patch.support_px)
+    bins = r[keep].astype(np.int64)
+    n = int(math.ceil(patch.support_px))
+    sums = np.bincount(bins, weights=patch.signal[keep], minlength=n)[:n]
+    counts = np.bincount(bins, minlength=n)[:n]
+    prof = np.where(counts > 0, sums / np.maximum(counts, 1), 0.0)
+    return NeighbourModel(x=x, y=y, profile=np.clip(prof, 0.0, None))
+
+
+def _centroid_step(
+    patch: SpotPatch, pos: F64, x: float, y: float, sigma_w: float
+) -> tuple[float, float, float, float]:
+    """One windowed-centroid update from (x, y): (new x, new y, Σw, Σ g²·r²)."""
+    rr2 = (patch.gx - x) ** 2 + (patch.gy - y) ** 2
+    g = np.exp(-0.5 * rr2 / (sigma_w * sigma_w)) * (rr2 < patch.support_px**2)
+    w = pos * g
+    total = float(w.sum())
+    if total <= 0:
+        return x, y, 0.0, 0.0
+    nx, ny = float((w * patch.gx).sum() / total), float((w * patch.gy).sum() / total)
+    spread = float((g * g * ((patch.gx - nx) ** 2 + (patch.gy - ny) ** 2)).sum())
+    return nx, ny, total, spread
+
+
+def refine_centroid(
+    patch: SpotPatch, x0: float, y0: float, sigma_w: float, iterations: int = 50
+) -> tuple[float, float, float]:
+    """Gaussian-windowed centroid of a :class:`SpotPatch`: (x, y, 1-sigma noise), COLMAP px.
+
+    The window (sigma ``sigma_w``, cut at the support radius) follows the estimate until it
+    stops moving; for any point-symmetric spot the true centre is the fixed point, so the
+    estimate is unbiased. The sigma is the ring noise propagated through one centroid step,
+    times the gain 1 / (1 - k) of the fixed-point iteration (k: how far one step follows a
+    displaced window, measured by displacing it).
+    """
+    pos = np.clip(patch.signal, 0.0, None)
+    x, y = x0, y0
+    total = spread = 0.0
+    for _ in range(iterations):
+        nx, ny, total, spread = _centroid_step(patch, pos, x, y, sigma_w)
+        moved = math.hypot(nx - x, ny - y)
+        x, y = nx, ny
+        if total <= 0 or moved < 1e-5:
+            break
+    if total <= 0:
+        return x, y, math.nan
+    delta = 0.25
+    kx = (_centroid_step(patch, pos, x + delta, y, sigma_w)[0] - x) / delta
+    ky = (_centroid_step(patch, pos, x, y + delta, sigma_w)[1] - y) / delta
+    gain = 1.0 / max(1.0 - 0.5 * (kx + ky), 0.2)
+    return x, y, gain * patch.noise * math.sqrt(spread / 2.0) / total
+
+
+def refine_gaussian(
+    patch: SpotPatch, x0: float, y0: float, sigma0: float
+) -> tuple[float, float, float]:
+    """2D Gaussian fit to the unclipped support pixels of a :class:`SpotPatch`: (x, y, 1-sigma).
+
+    Clipped pixels are left out, so a saturated core does not flatten the fitted profile; the
+    flanks of the spot carry its position.
+    """
+    use = patch.usable & ((patch.gx - x0) ** 2 + (patch.gy - y0) ** 2 < patch.support_px**2)
+    if use.sum() < 8:
+        return x0, y0, 1.0
+    px, py, pv = patch.gx[use], patch.gy[use], patch.signal[use]
+
+    def residual(p: F64) -> F64:
+        a, x, y, s, b0 = p
+        g = a * np.exp(-0.5 * ((px - x) ** 2 + (py - y) ** 2) / (s * s))
+        return np.asarray(g + b0 - pv, dtype=np.float64)
+
+    p0 = np.array([max(float(patch.signal.max()), 1e-3), x0, y0, sigma0, 0.0])
+    fit = least_squares(residual, p0, method="lm", max_nfev=300)
+    x, y = float(fit.x[1]), float(fit.x[2])
+    if not (fit.success and math.hypot(x - x0, y - y0) < patch.support_px):
+        return x0, y0, 1.0
+    s2 = float(fit.fun @ fit.fun) / max(len(pv) - 5, 1)
+    try:
+        cov = np.linalg.inv(fit.jac.T @ fit.jac) * s2
+    except np.linalg.LinAlgError:
+        return x, y, 1.0
+    return x, y, math.sqrt(max(0.5 * (cov[1, 1] + cov[2, 2]), 0.0))
+
+
+
+
+def refine_spot(planes: Planes, guess: SpotGuess, refine: str,
+                neighbours: tuple[NeighbourModel, ...] = ()) -> tuple[float, float, float]:
+    """Sub-pixel centre and localisation sigma of one candidate (crop COLMAP px); NaN if
+    impossible. ``refine``: "centroid" or "gaussian" (spots cut by the border: always)."""
+    sigma_w = max(1.0, guess.radius_px)
+    patch = spot_patch(planes, guess, guess.patch_support, neighbours)
+    if patch is None:
+        return math.nan, math.nan, math.nan
+    if refine == "gaussian" or patch.cut:
+        # a spot cut by the image border: a centroid would be pulled inwards, a symmetric
+        # model fitted to the visible pixels is not
+        return refine_gaussian(patch, guess.x, guess.y, sigma_w)
+    return refine_centroid(patch, guess.x, guess.y, sigma_w)
+
+
+def asymmetry(patch: SpotPatch, x: float, y: float, radius_px: float) -> float:
+    """How far the spot signal is from point symmetry about (x, y): 0 symmetric, ~1 not.
+
+    ``Σ (s(p) - s(p'))² / Σ (s(p)² + s(p')²)`` over the support's determined pixels, p' the
+    reflection of p through the centre (bilinear). Every spot model (a Gaussian footprint on a
+    tilted surface, motion blur, a clipped core) is point-symmetric; light of something else
+    overlapping it (an object's edge, a neighbour) is not.
+    """
+    reach = max(2.0 * radius_px, 3.0)
+    inside = (patch.gx - x) ** 2 + (patch.gy - y) ** 2 < reach * reach
+    if inside.sum() < 5:
+        return 0.0
+    x0, y0 = float(patch.gx[0, 0]), float(patch.gy[0, 0])
+    rows = (2.0 * y - patch.gy[inside]) - y0
+    cols = (2.0 * x - patch.gx[inside]) - x0
+    mirrored = ndimage.map_coordinates(patch.signal, [rows, cols], order=1, mode="nearest")
+    direct = patch.signal[inside]
+    den = float(np.sum(direct**2 + mirrored**2))
+    return float(np.sum((direct - mirrored) ** 2) / den) if den > 0 else 0.0

@@ -1,0 +1,117 @@
+"""Shape and contrast of a blob of a response map at full resolution (lengths in pixels).
+
+Around a local maximum: the background is the median of an outer ring, the contrast the peak
+above it; the half-maximum region (connected, holding the maximum) gives the radius
+``sqrt(area / pi)`` and the roundness; the noise is the robust std of a ring just outside the
+blob, so SNR = contrast / noise; the support is where the blob's azimuthal mean falls to 5 %
+of its contrast; a blob whose surroundings respond almost as strongly is not compact.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from sfm_laserscale.detection.refine import grid, window
+from sfm_laserscale.detection.response import robust_std
+
+F32 = NDArray[np.float32]
+F64 = NDArray[np.float64]
+TOO_LARGE = "too large to be a spot"
+#: the spot support ends where the azimuthal mean contrast drops below this fraction
+SUPPORT_FRACTION = 0.05
+
+
+def _half_max_region(
+    patch: F32, r0: int, c0: int, level: float, inner_edges: tuple[bool, bool, bool, bool]
+) -> tuple[NDArray[np.bool_], bool]:
+    """Connected region of ``patch >= level`` holding (r0, c0), and whether it reaches a window
+    edge that is not the image border (``inner_edges``: top, bottom, left, right)."""
+    labels, _ = ndimage.label(patch >= level)
+    lab = labels[r0, c0]
+    if lab == 0:
+        region = np.zeros(patch.shape, dtype=bool)
+        region[r0, c0] = True
+        return region, False
+    region = labels == lab
+    edges = (region[0].any(), region[-1].any(), region[:, 0].any(), region[:, -1].any())
+    touches = any(e and inner for e, inner in zip(edges, inner_edges, strict=True))
+    return region, bool(touches)
+
+
+def _roundness(region: NDArray[np.bool_]) -> float:
+    """sqrt(λmin / λmax) of the region's second moments (1 = round, 0 = a line)."""
+    rr, cc = np.nonzero(region)
+    if len(rr) < 3:
+        return 1.0
+    cov = np.cov(np.stack([rr, cc]).astype(np.float64)) + np.eye(2) / 12.0  # pixel extent
+    ev = np.linalg.eigvalsh(cov)
+    return float(np.sqrt(max(ev[0], 0.0) / max(ev[1], 1e-12)))
+
+
+@dataclass(frozen=True)
+class Blob:
+    """Shape and contrast of a blob (lengths in pixels)."""
+
+    radius: float  # half-maximum radius, sqrt(area / pi)
+    roundness: float
+    contrast: float  # peak minus surrounding background, response units
+    snr: float
+    support: float  # radius where the radial profile has fallen to SUPPORT_FRACTION
+    rejection: str | None = None
+
+
+
+
+def _support_radius(excess: F32, rr: F64, contrast: float, radius: float, limit: float) -> float:
+    """Smallest radius >= max(4, 2 r_half) where the azimuthal mean of ``excess`` is small."""
+    bins = rr.astype(np.int64).ravel()
+    sums = np.bincount(bins, weights=excess.ravel().astype(np.float64))
+    counts = np.maximum(np.bincount(bins), 1)
+    profile = sums / counts
+    start = int(math.ceil(max(4.0, 2.0 * radius)))
+    for r in range(start, min(len(profile), int(limit))):
+        if profile[r] < SUPPORT_FRACTION * contrast:
+            return float(r)
+    return float(max(start, min(len(profile), int(limit)) - 1))
+
+
+def shape_and_contrast(
+    resp: F32, row: int, col: int, max_radius: float, max_annulus_ratio: float
+) -> Blob:
+    """Half-max radius, roundness, contrast, SNR and support of the blob at (row, col)."""
+    big = int(math.ceil(2.0 * max_radius)) + 6
+    win = window(resp.shape, row, col, big)
+    patch = resp[win]
+    r0, c0 = row - win[0].start, col - win[1].start
+    peak = float(resp[window(resp.shape, row, col, 1)].max())
+    gx, gy = grid(win)
+    rr = np.hypot(gx - (col + 0.5), gy - (row + 0.5))
+    outer = patch[rr >= big - 4]
+    bg = float(np.median(outer)) if outer.size else 0.0
+    contrast = peak - bg
+    if contrast <= 0:
+        return Blob(0.0, 0.0, contrast, 0.0, 0.0, "no contrast against its surroundings")
+    inner_edges = (win[0].start > 0, win[0].stop < resp.shape[0],
+                   win[1].start > 0, win[1].stop < resp.shape[1])
+    region, touches = _half_max_region(patch, r0, c0, bg + 0.5 * contrast, inner_edges)
+    radius = math.sqrt(region.sum() / math.pi)
+    roundness = _roundness(region)
+    if touches or radius > max_radius:
+        return Blob(radius, roundness, contrast, 0.0, 0.0,
+                     f"{TOO_LARGE} (half-max radius > {max_radius:.1f} px)")
+    ring = patch[(rr >= 2.0 * radius + 2.0) & (rr <= 2.0 * radius + 5.0)]
+    noise = max(robust_std(ring - bg), robust_std(outer), 0.5 / 255.0)
+    snr = contrast / noise
+    support = _support_radius(patch - bg, rr, contrast, radius, big - 4)
+    ratio = float(np.percentile(ring - bg, 75)) / contrast if ring.size else 0.0
+    if ratio > max_annulus_ratio:
+        return Blob(radius, roundness, contrast, snr, support,
+                     f"not compact (coloured surroundings: ring/peak {ratio:.2f} > "
+                     f"{max_annulus_ratio:g})")
+    return Blob(radius, roundness, contrast, snr, support)
+
