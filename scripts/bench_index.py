@@ -32,7 +32,8 @@ def _case(work: Path, camera: str, points: int) -> dict[str, Path]:
 def _queries(lasers: Path, images: int) -> list[Any]:
     """SIFT features of the first ``images`` laser images (pipeline options)."""
     from sfm_laserscale.io.images import read_rgb
-    from sfm_laserscale.registration import RegistrationOptions, extract_sift
+    from sfm_laserscale.registration.options import RegistrationOptions
+    from sfm_laserscale.registration.sift import extract_sift
     files = sorted(p for p in lasers.iterdir() if p.suffix.lower() in (".png", ".jpg"))
     return [extract_sift(read_rgb(p), RegistrationOptions()) for p in files[:images]]
 
@@ -45,7 +46,9 @@ def measure(pool: Any, model: Any, queries: list[Any], lists_factor: float, prob
             exact: list[set[tuple[int, int]]], subsets: list[np.ndarray]) -> dict[str, Any]:
     """Build an IVF with ``lists_factor`` × √P cells and ``probe`` probes; time and recall."""
     from sfm_laserscale.model import ImageFeatures
-    from sfm_laserscale.registration import IndexOptions, MatchOptions, index_pool, match_to_model
+    from sfm_laserscale.registration.index import index_pool
+    from sfm_laserscale.registration.match import match_to_model
+    from sfm_laserscale.registration.options import IndexOptions, MatchOptions
     nlist = int(np.clip(round(lists_factor * np.sqrt(len(pool.descriptors))), 16, 1 << 14))
     t0 = time.perf_counter()
     index = index_pool(model, pool, IndexOptions(ivf_lists=nlist, ivf_probe=probe))
@@ -78,16 +81,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
 
-    from sfm_laserscale.io.models import load_model, load_model_features
+    from sfm_laserscale.io.models import load_model
     from sfm_laserscale.model import ImageFeatures
     from sfm_laserscale.pipeline import ScaleOptions
-    from sfm_laserscale.registration import (
-        IndexOptions,
-        MatchOptions,
-        descriptor_pool,
-        index_pool,
-        match_to_model,
-    )
+    from sfm_laserscale.registration.features import load_model_features
+    from sfm_laserscale.registration.index import descriptor_pool, index_pool
+    from sfm_laserscale.registration.match import match_to_model
+    from sfm_laserscale.registration.options import IndexOptions, MatchOptions
     paths = _case(args.work, args.camera, args.points)
     opts = ScaleOptions(progress=False)
     model = load_model(paths["model"])

@@ -51,8 +51,8 @@ WRAPPED = (
     ("image_read", "sfm_laserscale.pipeline", "read_rgb"),
     ("detect", "sfm_laserscale.pipeline", "detect_spots"),
     ("sift", "sfm_laserscale.pipeline", "extract_sift"),
-    ("match", "sfm_laserscale.registration", "match_to_model"),
-    ("pose", "sfm_laserscale.registration", "estimate_pose"),
+    ("match", "sfm_laserscale.registration.pose", "match_to_model"),
+    ("pose", "sfm_laserscale.registration.pose", "estimate_pose"),
     ("estimate", "sfm_laserscale.pipeline", "estimate_image"),
     ("fuse", "sfm_laserscale.pipeline", "fuse_all"),
     ("mesh_check", "sfm_laserscale.pipeline", "mesh_model_agreement"),
@@ -285,7 +285,7 @@ def instrument(rec: dict[str, Any]) -> None:
     for stage, module, attr in THREADED:
         mod = importlib.import_module(module)
         setattr(mod, attr, _wrap_threaded(getattr(mod, attr), stage, rec))
-    from sfm_laserscale.sift_workers import SiftPool
+    from sfm_laserscale.registration.sift_workers import SiftPool
     for stage, method in POOL_METHODS:
         setattr(SiftPool, method, _wrap(getattr(SiftPool, method), stage, rec))
 
@@ -328,7 +328,7 @@ def run_case(work: Path, points: int, triangles: int, images: int,
     """Run the scale job on one case in this process; timings, memory, sizes and results.
     ``workers``: SIFT worker processes (None: the tool's default)."""
     from sfm_laserscale.pipeline import ScaleOptions, run_scale
-    from sfm_laserscale.sift_workers import SiftWorkerOptions
+    from sfm_laserscale.registration.sift_workers import SiftWorkerOptions
     paths = case_inputs(work, points, triangles, images, camera)
     rec: dict[str, Any] = {"seconds": {}, "peak_bytes": 0, "peak_stage": "", "stage_peak": {}}
     baseline = maxrss_bytes()  # interpreter + numpy/open3d/pycolmap/opencv imported
@@ -399,9 +399,12 @@ def sift_reference(work: Path, points: int = 100_000) -> dict[str, Any]:
     import cv2
 
     from sfm_laserscale.io.images import read_rgb
-    from sfm_laserscale.io.models import load_model, load_model_features
+    from sfm_laserscale.io.models import load_model
     from sfm_laserscale.pipeline import ScaleOptions
-    from sfm_laserscale.registration import build_descriptor_index, extract_sift, match_to_model
+    from sfm_laserscale.registration.features import load_model_features
+    from sfm_laserscale.registration.index import build_descriptor_index
+    from sfm_laserscale.registration.match import match_to_model
+    from sfm_laserscale.registration.sift import extract_sift
     paths = case_inputs(work, points, 100_000, 1)
     opts = ScaleOptions()
     model = load_model(paths["model"])

@@ -116,10 +116,13 @@ def ours_child(model: Path, database: Path, laser_dir: Path) -> dict[str, Any]:
     """Our registration of the laser images (run in a fresh process by run_ours)."""
     t0 = time.perf_counter()
     from sfm_laserscale.io.images import LaserImage, read_rgb
-    from sfm_laserscale.io.models import load_model, load_model_features
+    from sfm_laserscale.io.models import load_model
     from sfm_laserscale.pipeline import ScaleOptions
-    from sfm_laserscale.registration import build_descriptor_index, extract_sift, register_image
-    from sfm_laserscale.sift_workers import start_sift_pool
+    from sfm_laserscale.registration.features import load_model_features
+    from sfm_laserscale.registration.index import build_descriptor_index
+    from sfm_laserscale.registration.pose import register_image
+    from sfm_laserscale.registration.sift import extract_sift
+    from sfm_laserscale.registration.sift_workers import start_sift_pool
     opts = ScaleOptions()
     t_import = time.perf_counter()
     m = load_model(model)
@@ -241,7 +244,8 @@ def compare_fixture(fixture: Path, work: Path, held_out: str = "03.jpg") -> dict
     )
     from sfm_laserscale.io.colmap_database import read_database_features
     from sfm_laserscale.pipeline import ScaleOptions
-    from sfm_laserscale.registration import build_descriptor_index, register_image
+    from sfm_laserscale.registration.index import build_descriptor_index
+    from sfm_laserscale.registration.pose import register_image
     if work.exists():
         shutil.rmtree(work)
     work.mkdir(parents=True)

@@ -64,7 +64,7 @@ def _setup_logging(verbose: bool, quiet: bool) -> None:
     root.addHandler(handler)
     root.setLevel(logging.DEBUG)
     logging.getLogger("sfm_laserscale").setLevel(logging.DEBUG)
-    from sfm_laserscale.registration import configure_colmap_logging
+    from sfm_laserscale.registration.pose import configure_colmap_logging
 
     configure_colmap_logging(verbose)
 
@@ -162,7 +162,7 @@ _path = click.Path(path_type=Path)
 def scale(**kw: Any) -> int:
     """Estimate the model's metric scale and write the rescaled model, mesh and report."""
     from sfm_laserscale.pipeline import ScaleInputs, ScaleOptions, run_scale
-    from sfm_laserscale.sift_workers import SiftWorkerOptions
+    from sfm_laserscale.registration.sift_workers import SiftWorkerOptions
 
     inputs = ScaleInputs(
         model=kw["model"],

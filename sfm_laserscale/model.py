@@ -193,6 +193,15 @@ class ImageFeatures:
 
 
 @dataclass(frozen=True)
+class ObservationFeatures:
+    """Descriptors tied to some observations of one model image (re-extracted SIFT)."""
+
+    observation_idx: NDArray[np.int64]  # (K,) rows of Image.xy_px / Image.point3D_ids
+    descriptors: NDArray[np.uint8]  # (K, 128), COLMAP bin order
+    tie_distance_px: NDArray[np.float64]  # (K,) keypoint-to-observation distance, pixels
+
+
+@dataclass(frozen=True)
 class Spot:
     """A laser spot in one image: sub-pixel centre (COLMAP convention), score and pixel sigma."""
 

@@ -20,7 +20,7 @@ from sfm_laserscale.errors import InputError
 from sfm_laserscale.fusion import FusedScale, FusionOptions, fuse
 from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
 from sfm_laserscale.io.meshes import TriangleMesh, load_mesh
-from sfm_laserscale.io.models import load_model, open_model_features
+from sfm_laserscale.io.models import load_model
 from sfm_laserscale.io.spots_csv import read_spots_csv
 from sfm_laserscale.memory import trim_heap
 from sfm_laserscale.methods.pcm_joint import (
@@ -49,20 +49,18 @@ from sfm_laserscale.raycast import (
     pixel_rays,
     spot_cast_rays,
 )
-from sfm_laserscale.registration import (
-    DescriptorIndex,
+from sfm_laserscale.registration.features import open_model_features
+from sfm_laserscale.registration.index import DescriptorIndex, build_index, select_index_candidates
+from sfm_laserscale.registration.options import (
     IndexOptions,
     RegistrationOptions,
-    RegistrationResult,
     SiftOptions,
     TieOptions,
-    build_index,
-    extract_sift,
-    register_image,
-    select_index_candidates,
 )
+from sfm_laserscale.registration.pose import RegistrationResult, register_image
+from sfm_laserscale.registration.sift import extract_sift
+from sfm_laserscale.registration.sift_workers import SiftPool, SiftWorkerOptions, start_sift_pool
 from sfm_laserscale.rig import Rig, load_rig
-from sfm_laserscale.sift_workers import SiftPool, SiftWorkerOptions, start_sift_pool
 from sfm_laserscale.uncertainty import (
     EstimationOptions,
     ImageEstimates,

@@ -12,17 +12,16 @@ from script_loader import load_script
 from sfm_laserscale.io.colmap import read_colmap_model
 from sfm_laserscale.io.meshes import load_mesh
 from sfm_laserscale.model import ImageFeatures
-from sfm_laserscale.registration import (
+from sfm_laserscale.registration.index import (
     DescriptorPool,
-    IndexOptions,
-    MatchOptions,
     _gather_kept,
     _rank_and_cells,
     _rank_per_point,
     _Selection,
     index_pool,
-    match_to_model,
 )
+from sfm_laserscale.registration.match import match_to_model
+from sfm_laserscale.registration.options import IndexOptions, MatchOptions
 from sfm_laserscale.synthetic.bench_data import (
     pad_model,
     sift_like_descriptors,
@@ -166,7 +165,7 @@ def test_index_from_the_database_holds_one_copy_of_the_descriptors(
     import tracemalloc
 
     from sfm_laserscale.io.colmap_database import open_database_features
-    from sfm_laserscale.registration import build_descriptor_index
+    from sfm_laserscale.registration.index import build_descriptor_index
 
     demo = small_dataset.out_dir
     pm = pad_model(demo / "sparse" / "0", demo / "database.db", tmp_path / "m", 60000)

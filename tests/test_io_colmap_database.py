@@ -47,7 +47,8 @@ def test_lazy_features_read_one_image_per_access_and_index_alike() -> None:
     kept between accesses) and gives the same features, hence the same descriptor index,
     as reading the whole database."""
     from sfm_laserscale.io.colmap import read_colmap_model
-    from sfm_laserscale.registration import IndexOptions, build_descriptor_index
+    from sfm_laserscale.registration.index import build_descriptor_index
+    from sfm_laserscale.registration.options import IndexOptions
 
     whole = read_database_features(DB)
     before = _folder_state(MAUPERTUIS)

@@ -24,7 +24,7 @@ from sfm_laserscale.geometry import rotation_angle_deg
 from sfm_laserscale.io import openmvg
 from sfm_laserscale.io.colmap import model_without_images
 from sfm_laserscale.io.images import read_rgb
-from sfm_laserscale.io.models import load_model, load_model_features
+from sfm_laserscale.io.models import load_model
 from sfm_laserscale.io.openmvg import (
     VLFEAT_TO_COLMAP,
     find_openmvg_regions_dir,
@@ -35,16 +35,18 @@ from sfm_laserscale.io.openmvg import (
     read_openmvg_sfm_data,
     write_scaled_openmvg_sfm_data,
 )
-from sfm_laserscale.model import INVALID_POINT3D_ID, Camera, ImageFeatures, SparseModel
-from sfm_laserscale.registration import (
+from sfm_laserscale.model import (
+    INVALID_POINT3D_ID,
+    Camera,
+    ImageFeatures,
     ObservationFeatures,
-    RegistrationOptions,
-    SiftOptions,
-    TieOptions,
-    build_descriptor_index,
-    extract_sift,
-    register_image,
+    SparseModel,
 )
+from sfm_laserscale.registration.features import load_model_features
+from sfm_laserscale.registration.index import build_descriptor_index
+from sfm_laserscale.registration.options import RegistrationOptions, SiftOptions, TieOptions
+from sfm_laserscale.registration.pose import register_image
+from sfm_laserscale.registration.sift import extract_sift
 
 F64 = NDArray[np.float64]
 FIXTURES = Path(__file__).resolve().parents[1].parent / "shared" / "fixtures"

@@ -27,24 +27,23 @@ from sfm_laserscale.model import (
     Camera,
     Image,
     ImageFeatures,
+    ObservationFeatures,
     Pose,
     SparseModel,
 )
-from sfm_laserscale.registration import (
+from sfm_laserscale.registration.index import build_descriptor_index
+from sfm_laserscale.registration.match import match_to_model
+from sfm_laserscale.registration.options import (
     IndexOptions,
     MatchOptions,
-    ObservationFeatures,
     PoseOptions,
     RegistrationOptions,
     SiftOptions,
     TieOptions,
-    build_descriptor_index,
-    estimate_pose,
-    extract_sift,
-    features_from_images,
-    match_to_model,
-    register_image,
 )
+from sfm_laserscale.registration.pose import estimate_pose, register_image
+from sfm_laserscale.registration.sift import extract_sift
+from sfm_laserscale.registration.ties import features_from_images
 
 F64 = NDArray[np.float64]
 FIXTURES = Path(__file__).resolve().parents[1].parent / "shared" / "fixtures"
@@ -382,7 +381,7 @@ def test_index_in_two_steps_equals_one_and_needs_no_observations(
         colmap_fixture: tuple[SparseModel, dict[str, ImageFeatures]]) -> None:
     """Pass 1 (the only one reading the 2D observations), then passes 2-3 on the model without
     them: the same index as in one call; the candidates are consumed."""
-    from sfm_laserscale.registration import build_index, select_index_candidates
+    from sfm_laserscale.registration.index import build_index, select_index_candidates
 
     model, feats = colmap_fixture
     for opts in (IndexOptions(), IndexOptions(exact=False, ivf_lists=30)):
@@ -458,7 +457,7 @@ def test_ivf_index_lists_equal_faiss_own_add_and_find_near_duplicates(
     exact L2 distance."""
     import faiss
 
-    from sfm_laserscale import registration as reg
+    from sfm_laserscale.registration import index as reg
 
     if route == "copied":
         monkeypatch.delattr(faiss, "ZeroCopyIOReader")

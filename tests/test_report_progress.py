@@ -227,7 +227,7 @@ def test_colmap_log_captured_and_terminal_unchanged(
 ) -> None:
     """Every glog level is captured (flushed before the block ends, files removed after); the
     terminal shows what the CLI's --verbose setting shows, and the settings come back."""
-    from sfm_laserscale.registration import configure_colmap_logging
+    from sfm_laserscale.registration.pose import configure_colmap_logging
 
     before = _glog_flags()
     try:

@@ -20,18 +20,11 @@ from click.testing import CliRunner
 from sfm_laserscale.cli import main
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.images import read_rgb
+from sfm_laserscale.model import ImageFeatures, ObservationFeatures
 from sfm_laserscale.provenance import glog_lines, merged_glog
-from sfm_laserscale.registration import (
-    ImageFeatures,
-    ObservationFeatures,
-    SiftOptions,
-    extract_sift,
-)
-from sfm_laserscale.sift_workers import (
-    SiftPool,
-    SiftWorkerOptions,
-    plan_workers,
-)
+from sfm_laserscale.registration.options import SiftOptions
+from sfm_laserscale.registration.sift import extract_sift
+from sfm_laserscale.registration.sift_workers import SiftPool, SiftWorkerOptions, plan_workers
 
 GB = 2**30
 
@@ -103,7 +96,7 @@ def test_pool_killed_worker_gives_its_image_back(small_dataset: Any,
             time.sleep(0.005)
         lost = w.current
         assert lost is not None, "the worker never took an image"
-        with caplog.at_level(logging.WARNING, logger="sfm_laserscale.sift_workers"):
+        with caplog.at_level(logging.WARNING, logger="sfm_laserscale.registration.sift_workers"):
             w.proc.kill()
             got = [pool.features(p, read_rgb(p)) for p in paths]
         assert not w.alive
@@ -150,7 +143,7 @@ def test_pool_without_a_startable_worker_extracts_here(small_dataset: Any, tmp_p
     """No interpreter to start: a warning, no worker, every image extracted here."""
     paths = _laser_paths(small_dataset)[:2]
     monkeypatch.setattr("sys.executable", str(tmp_path / "no-such-python"))
-    with (caplog.at_level(logging.WARNING, logger="sfm_laserscale.sift_workers"),
+    with (caplog.at_level(logging.WARNING, logger="sfm_laserscale.registration.sift_workers"),
           SiftPool(paths, SiftOptions(), workers=1) as pool):
         got = [pool.features(p, read_rgb(p)) for p in paths]
         assert pool.workers == 0 and pool.images_in_workers == 0
@@ -176,8 +169,8 @@ def test_worker_imports_this_package_from_another_folder(small_dataset: Any, tmp
 _ORPHAN_SCRIPT = """
 import sys, time
 from pathlib import Path
-from sfm_laserscale.registration import SiftOptions
-from sfm_laserscale.sift_workers import SiftPool
+from sfm_laserscale.registration.options import SiftOptions
+from sfm_laserscale.registration.sift_workers import SiftPool
 pool = SiftPool([Path(p) for p in sys.argv[1:]], SiftOptions(), workers=1)
 while pool._workers[0].current is None:
     time.sleep(0.005)
@@ -265,13 +258,14 @@ def test_model_images_reextracted_with_workers_are_the_same(
         small_dataset: Any, caplog: pytest.LogCaptureFixture) -> None:
     """``--images`` (no database): the model images' SIFT shared with two workers ties the
     same keypoints to the same observations as extracting it all here."""
-    from sfm_laserscale.io.models import load_model, load_model_features
-    from sfm_laserscale.registration import TieOptions
+    from sfm_laserscale.io.models import load_model
+    from sfm_laserscale.registration.features import load_model_features
+    from sfm_laserscale.registration.options import TieOptions
 
     model = load_model(small_dataset.model_dir)
     args = (model, small_dataset.model_dir, None, small_dataset.images_dir, None, TieOptions())
     here = load_model_features(*args)
-    with caplog.at_level(logging.INFO, logger="sfm_laserscale.sift_workers"):
+    with caplog.at_level(logging.INFO, logger="sfm_laserscale.registration.sift_workers"):
         shared = load_model_features(*args, SiftWorkerOptions(workers=2))
     assert f"SIFT of {len(here)} model images shared with 2 worker" in caplog.text
     assert list(shared) == list(here)
@@ -284,13 +278,14 @@ def test_model_images_reextracted_with_workers_are_the_same(
 
 def test_model_image_of_the_wrong_size_is_named_before_any_extraction(
         small_dataset: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import sfm_laserscale.io.models as models
-    import sfm_laserscale.registration as registration
-    from sfm_laserscale.registration import TieOptions
+    import sfm_laserscale.registration.features as features
+    import sfm_laserscale.registration.ties as ties
+    from sfm_laserscale.io.models import load_model
+    from sfm_laserscale.registration.options import TieOptions
 
     images = tmp_path / "images"
     shutil.copytree(small_dataset.images_dir, images)
-    model = models.load_model(small_dataset.model_dir)
+    model = load_model(small_dataset.model_dir)
     victim = images / sorted(im.name for im in model.images.values())[-1]
     full = cv2.imread(str(victim))
     cv2.imwrite(str(victim), cv2.resize(full, (full.shape[1] // 2, full.shape[0] // 2)))
@@ -298,8 +293,8 @@ def test_model_image_of_the_wrong_size_is_named_before_any_extraction(
     def forbidden(*args: Any, **kwargs: Any) -> Any:
         raise AssertionError("nothing is extracted before every size is checked")
 
-    monkeypatch.setattr(models, "start_pool", forbidden)
-    monkeypatch.setattr(registration, "extract_sift", forbidden)
+    monkeypatch.setattr(features, "start_pool", forbidden)
+    monkeypatch.setattr(ties, "extract_sift", forbidden)
     with pytest.raises(InputError, match=r"image is 320×240 px but its camera is 640×480"):
-        models.load_model_features(model, small_dataset.model_dir, None, images, None,
-                                   TieOptions(), SiftWorkerOptions(workers=1))
+        features.load_model_features(model, small_dataset.model_dir, None, images, None,
+                                     TieOptions(), SiftWorkerOptions(workers=1))

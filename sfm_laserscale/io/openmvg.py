@@ -76,10 +76,10 @@ from sfm_laserscale.model import (
     Camera,
     Image,
     ImageFeatures,
+    ObservationFeatures,
     Pose,
     SparseModel,
 )
-from sfm_laserscale.registration import ObservationFeatures
 
 logger = logging.getLogger(__name__)
 

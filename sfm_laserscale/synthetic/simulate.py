@@ -90,7 +90,8 @@ from sfm_laserscale.raycast import (
     cast_spots,
     pixel_rays,
 )
-from sfm_laserscale.registration import PoseOptions, estimate_pose
+from sfm_laserscale.registration.options import PoseOptions
+from sfm_laserscale.registration.pose import estimate_pose
 from sfm_laserscale.rig import Rig, rig_from_dict
 from sfm_laserscale.synthetic.dataset import make_rig
 from sfm_laserscale.uncertainty import (

@@ -1,9 +1,9 @@
 """SIFT of the laser images in worker processes, ahead of the registration (issue #7).
 
 pycolmap's CPU SIFT runs one image on one core and holds the GIL, so threads cannot share
-it. Worker processes (``python -m sfm_laserscale.sift_workers``: a fresh interpreter, so no
-fork of a process that holds OpenMP or FAISS threads and no re-run of the caller's
-``__main__``) extract the laser images' features while this process builds the descriptor
+it. Worker processes (``python -m sfm_laserscale.registration.sift_workers``: a fresh
+interpreter, so no fork of a process that holds OpenMP or FAISS threads and no re-run of the
+caller's ``__main__``) extract the laser images' features while this process builds the descriptor
 index, reads the mesh and registers the images already extracted. Workers take images from
 the last one backwards, this process from the first one forwards, so it only waits where they
 meet. The features are bit-identical to ``extract_sift`` in this process: the workers run the
@@ -32,8 +32,10 @@ from typing import IO, Any
 
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.images import LaserImage, read_rgb
+from sfm_laserscale.model import ImageFeatures
 from sfm_laserscale.provenance import glog_lines
-from sfm_laserscale.registration import ImageFeatures, SiftOptions, extract_sift
+from sfm_laserscale.registration.options import SiftOptions
+from sfm_laserscale.registration.sift import extract_sift
 from sfm_laserscale.resources import available_cpus, available_memory_bytes
 
 logger = logging.getLogger(__name__)
@@ -135,7 +137,7 @@ class SiftPool:
     def _start_worker(self) -> _Worker | None:
         """A worker process importing this very package; None (and a warning) if none starts."""
         err = tempfile.TemporaryFile()  # noqa: SIM115 - closed by close()
-        here = str(Path(__file__).resolve().parents[1])  # the folder holding sfm_laserscale
+        here = str(Path(__file__).resolve().parents[2])  # the folder holding sfm_laserscale
         path = os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p)
         # glog keeps writing to stderr (the file above): its lines go into run.log
         env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=path)
