@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sfm_laserscale.io.meshes import load_mesh, write_scaled_mesh
+from sfm_laserscale.io.meshes.mesh import load_mesh, write_scaled_mesh
 
 VERTEX_DTYPE = np.dtype([
     ("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),

@@ -237,12 +237,9 @@ def compare_fixture(fixture: Path, work: Path, held_out: str = "03.jpg") -> dict
     register it back from its database features (no extraction: the fixture's JPEGs are too
     compressed for a fresh SIFT, see the fixtures' README), by COLMAP's image_registrator and by
     our matching + pose; both poses against each other and against the original pose."""
-    from sfm_laserscale.io.colmap import (
-        model_without_images,
-        read_colmap_model,
-        write_colmap_model_binary,
-    )
+    from sfm_laserscale.io.colmap import model_without_images, read_colmap_model
     from sfm_laserscale.io.colmap_database import read_database_features
+    from sfm_laserscale.io.colmap_write import write_colmap_model_binary
     from sfm_laserscale.pipeline import ScaleOptions
     from sfm_laserscale.registration.index import build_descriptor_index
     from sfm_laserscale.registration.pose import register_image

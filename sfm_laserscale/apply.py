@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from sfm_laserscale.errors import InputError
-from sfm_laserscale.io.colmap import write_scaled_colmap_model
-from sfm_laserscale.io.meshes import write_scaled_mesh
+from sfm_laserscale.io.colmap_write import write_scaled_colmap_model
+from sfm_laserscale.io.meshes.mesh import write_scaled_mesh
 from sfm_laserscale.io.models import load_model
 from sfm_laserscale.io.openmvg import write_scaled_openmvg_sfm_data
 from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir

@@ -19,7 +19,7 @@ from sfm_laserscale.detection import DetectionOptions, DetectionResult, detect_s
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.fusion import FusedScale, FusionOptions, fuse
 from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
-from sfm_laserscale.io.meshes import TriangleMesh, load_mesh
+from sfm_laserscale.io.meshes.mesh import TriangleMesh, load_mesh
 from sfm_laserscale.io.models import load_model
 from sfm_laserscale.io.spots_csv import read_spots_csv
 from sfm_laserscale.memory import trim_heap

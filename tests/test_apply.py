@@ -20,8 +20,9 @@ from click.testing import CliRunner, Result
 from sfm_laserscale.apply import ApplyInputs, ApplyOptions, apply_scale
 from sfm_laserscale.cli import main
 from sfm_laserscale.errors import InputError
-from sfm_laserscale.io.colmap import read_colmap_model, write_colmap_model_binary
-from sfm_laserscale.io.meshes import load_mesh
+from sfm_laserscale.io.colmap import read_colmap_model
+from sfm_laserscale.io.colmap_write import write_colmap_model_binary
+from sfm_laserscale.io.meshes.mesh import load_mesh
 from sfm_laserscale.io.openmvg import read_openmvg_sfm_data
 from sfm_laserscale.io.transforms import (
     metric_from_model_matrix,

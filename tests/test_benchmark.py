@@ -10,7 +10,7 @@ import pytest
 from script_loader import load_script
 
 from sfm_laserscale.io.colmap import read_colmap_model
-from sfm_laserscale.io.meshes import load_mesh
+from sfm_laserscale.io.meshes.mesh import load_mesh
 from sfm_laserscale.model import ImageFeatures
 from sfm_laserscale.registration.index import (
     DescriptorPool,

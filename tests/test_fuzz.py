@@ -384,7 +384,7 @@ def test_huge_counts_in_headers_allocate_little(small_dataset: Any, tmp_path: Pa
     """Truncated files whose headers declare billions of records: rejected at once from the
     file size, with a peak of traced allocations far below the declared size."""
     from sfm_laserscale.errors import InputError
-    from sfm_laserscale.io.meshes import load_mesh
+    from sfm_laserscale.io.meshes.mesh import load_mesh
     from sfm_laserscale.io.models import load_model
 
     variants = _huge_count_variants(small_dataset)

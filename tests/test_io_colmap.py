@@ -14,10 +14,8 @@ import pytest
 
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.geometry import rotmat_from_qvec
-from sfm_laserscale.io.colmap import (
-    detect_colmap_format,
-    model_without_images,
-    read_colmap_model,
+from sfm_laserscale.io.colmap import detect_colmap_format, model_without_images, read_colmap_model
+from sfm_laserscale.io.colmap_write import (
     write_colmap_model_binary,
     write_colmap_model_text,
     write_scaled_colmap_model,

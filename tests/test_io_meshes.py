@@ -16,7 +16,7 @@ import trimesh
 from plyfile import PlyData, PlyElement
 
 from sfm_laserscale.errors import InputError
-from sfm_laserscale.io.meshes import TriangleMesh, load_mesh, write_scaled_mesh
+from sfm_laserscale.io.meshes.mesh import TriangleMesh, load_mesh, write_scaled_mesh
 
 SCALE = 2.5
 TEXTURE_BYTES = b"\x89PNG fake texture \x00\x01\x02"
@@ -650,7 +650,8 @@ def test_single_list_variable_faces_before_vertices(tmp_path: Path) -> None:
 def test_streaming_in_small_chunks_and_without_sendfile(tmp_path: Path,
                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     """Multi-chunk PLY/OBJ rewriting gives the same bytes as one chunk (and no sendfile)."""
-    from sfm_laserscale.io import meshes
+    from sfm_laserscale.io.meshes import common
+    from sfm_laserscale.io.meshes import ply as ply_format
 
     ply = tmp_path / "in" / "mesh.ply"
     ply.parent.mkdir()
@@ -662,9 +663,9 @@ def test_streaming_in_small_chunks_and_without_sendfile(tmp_path: Path,
     def no_sendfile(*args: object) -> int:
         raise OSError("sendfile not supported")
 
-    monkeypatch.setattr(meshes, "_SCALE_CHUNK", 3 * 37)  # 3 vertex rows per chunk
-    monkeypatch.setattr(meshes, "_COPY_CHUNK", 16)
-    monkeypatch.setattr(meshes.os, "sendfile", no_sendfile)
+    monkeypatch.setattr(ply_format, "_SCALE_CHUNK", 3 * 37)  # 3 vertex rows per chunk
+    monkeypatch.setattr(common, "_COPY_CHUNK", 16)
+    monkeypatch.setattr(common.os, "sendfile", no_sendfile)
     chunked = [p.read_bytes() for p in (write_scaled_mesh(ply, tmp_path / "b", SCALE)[0],
                                         write_scaled_mesh(obj, tmp_path / "b", SCALE)[0])]
     assert chunked == reference

@@ -9,8 +9,8 @@ from typing import Any
 import pytest
 
 from sfm_laserscale.demo import scale_inputs_for
-from sfm_laserscale.io.colmap import write_scaled_colmap_model
-from sfm_laserscale.io.meshes import write_scaled_mesh
+from sfm_laserscale.io.colmap_write import write_scaled_colmap_model
+from sfm_laserscale.io.meshes.mesh import write_scaled_mesh
 from sfm_laserscale.pipeline import ScaleOptions, run_scale
 
 
@@ -95,7 +95,7 @@ def test_mesh_check_on_the_crop_is_the_whole_mesh_check(baseline: Any,
 
     import numpy as np
 
-    from sfm_laserscale.io.meshes import TriangleMesh
+    from sfm_laserscale.io.meshes.mesh import TriangleMesh
     from sfm_laserscale.pipeline import (
         crop_mesh,
         load_inputs,

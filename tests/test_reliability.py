@@ -23,7 +23,7 @@ from click.testing import CliRunner
 from sfm_laserscale.cli import main
 from sfm_laserscale.io import outputs
 from sfm_laserscale.io.colmap import read_colmap_model
-from sfm_laserscale.io.meshes import load_mesh
+from sfm_laserscale.io.meshes.mesh import load_mesh
 from sfm_laserscale.io.outputs import check_output_dir, clean_stale_staging, staged_output_dir
 
 REPO = Path(__file__).resolve().parents[1]

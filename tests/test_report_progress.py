@@ -23,7 +23,7 @@ import plyfile
 import pycolmap
 import pytest
 
-from sfm_laserscale.io.meshes import write_scaled_mesh
+from sfm_laserscale.io.meshes.mesh import write_scaled_mesh
 from sfm_laserscale.provenance import (
     captured_colmap_log,
     progress_bar,

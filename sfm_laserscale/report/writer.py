@@ -18,9 +18,9 @@ import numpy as np
 
 from sfm_laserscale import __version__
 from sfm_laserscale.geometry import qvec_from_rotmat
-from sfm_laserscale.io.colmap import write_scaled_colmap_model
+from sfm_laserscale.io.colmap_write import write_scaled_colmap_model
 from sfm_laserscale.io.images import read_rgb
-from sfm_laserscale.io.meshes import write_scaled_mesh
+from sfm_laserscale.io.meshes.mesh import write_scaled_mesh
 from sfm_laserscale.io.openmvg import write_scaled_openmvg_sfm_data
 from sfm_laserscale.io.spots_csv import write_spots_csv
 from sfm_laserscale.io.transforms import write_matrix_4x4, write_sim3

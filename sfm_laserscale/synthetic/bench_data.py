@@ -26,8 +26,9 @@ import plyfile
 from numpy.typing import NDArray
 
 from sfm_laserscale.geometry import rotmat_from_qvec
-from sfm_laserscale.io.colmap import read_colmap_model, write_colmap_model_binary
+from sfm_laserscale.io.colmap import read_colmap_model
 from sfm_laserscale.io.colmap_database import read_database_features
+from sfm_laserscale.io.colmap_write import write_colmap_model_binary
 from sfm_laserscale.model import Image, SparseModel
 
 logger = logging.getLogger(__name__)

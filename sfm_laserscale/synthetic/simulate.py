@@ -389,7 +389,7 @@ def load_scene(inputs: SimulationInputs, options: SimulationOptions
                ) -> tuple[SimScene, MeshRaycaster]:
     """The demo's seafloor (make_scene) or the metric mesh given."""
     if inputs.mesh is not None:
-        from sfm_laserscale.io.meshes import load_mesh
+        from sfm_laserscale.io.meshes.mesh import load_mesh
 
         mesh = load_mesh(inputs.mesh)
         return build_scene(np.asarray(mesh.vertices, dtype=np.float64), mesh.triangles,
