@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from sfm_laserscale.detect_run import DetectRunOptions, Frame, detect_many
+from sfm_laserscale.commands.detect import DetectRunOptions, Frame, detect_many
 from sfm_laserscale.model import Camera
 from sfm_laserscale.rig import Rig, rig_from_dict
 from sfm_laserscale.synthetic.scene import SceneOptions, make_texture

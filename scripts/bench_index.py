@@ -83,11 +83,11 @@ def main(argv: list[str] | None = None) -> int:
 
     from sfm_laserscale.io.models import load_model
     from sfm_laserscale.model import ImageFeatures
-    from sfm_laserscale.pipeline import ScaleOptions
     from sfm_laserscale.registration.features import load_model_features
     from sfm_laserscale.registration.index import descriptor_pool, index_pool
     from sfm_laserscale.registration.match import match_to_model
     from sfm_laserscale.registration.options import IndexOptions, MatchOptions
+    from sfm_laserscale.run_types import ScaleOptions
     paths = _case(args.work, args.camera, args.points)
     opts = ScaleOptions(progress=False)
     model = load_model(paths["model"])

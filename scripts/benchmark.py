@@ -5,7 +5,7 @@ Synthetic cases of growing size, one axis varied at a time around a base case:
 model points 10k / 100k / 1M, mesh triangles 100k / 1M / 10M / 20M, laser images 1 / 6 / 20.
 Inputs come from the small demo data set (a real pycolmap SfM model and database, rendered laser
 images with spots), padded with ``sfm_laserscale.synthetic.bench_data``. Each case runs
-``pipeline.run_scale`` in its own subprocess (peak RSS from /proc/self/status VmHWM, which
+``commands.scale.run`` in its own subprocess (peak RSS from /proc/self/status VmHWM, which
 covers C++ allocations), with every stage function wrapped by a timer. The load average is
 recorded next to every case (the machine may be shared).
 
@@ -41,22 +41,22 @@ import numpy as np
 
 # Stages timed inside the run (name -> (module, attribute)); wrapped in the child process.
 WRAPPED = (
-    ("model_read", "sfm_laserscale.pipeline", "load_model"),
-    ("mesh_read", "sfm_laserscale.pipeline", "load_mesh"),
+    ("model_read", "sfm_laserscale.commands.scale", "load_model"),
+    ("mesh_read", "sfm_laserscale.commands.scale", "load_mesh"),
     # the database is read image by image inside the index build (3 passes), counted there
-    ("index_build", "sfm_laserscale.pipeline", "select_index_candidates"),
-    ("index_build", "sfm_laserscale.pipeline", "build_index"),
-    ("mesh_crop", "sfm_laserscale.pipeline", "crop_mesh"),
+    ("index_build", "sfm_laserscale.commands.scale", "select_index_candidates"),
+    ("index_build", "sfm_laserscale.commands.scale", "build_index"),
+    ("mesh_crop", "sfm_laserscale.commands.scale", "crop_mesh"),
     ("raycast_build", "sfm_laserscale.raycast", "MeshRaycaster"),
-    ("image_read", "sfm_laserscale.pipeline", "read_rgb"),
-    ("detect", "sfm_laserscale.pipeline", "detect_spots"),
-    ("sift", "sfm_laserscale.pipeline", "extract_sift"),
+    ("image_read", "sfm_laserscale.commands.scale", "read_rgb"),
+    ("detect", "sfm_laserscale.commands.scale", "detect_spots"),
+    ("sift", "sfm_laserscale.commands.scale", "extract_sift"),
     ("match", "sfm_laserscale.registration.pose", "match_to_model"),
     ("pose", "sfm_laserscale.registration.pose", "estimate_pose"),
-    ("estimate", "sfm_laserscale.pipeline", "estimate_image"),
-    ("fuse", "sfm_laserscale.pipeline", "fuse_all"),
-    ("mesh_check", "sfm_laserscale.pipeline", "mesh_model_agreement"),
-    ("provenance", "sfm_laserscale.pipeline", "provenance"),
+    ("estimate", "sfm_laserscale.commands.scale", "estimate_image"),
+    ("fuse", "sfm_laserscale.commands.scale", "fuse_all"),
+    ("mesh_check", "sfm_laserscale.commands.scale", "mesh_model_agreement"),
+    ("provenance", "sfm_laserscale.commands.scale", "provenance"),
     ("report_build", "sfm_laserscale.report.writer", "build_report"),
     ("model_write", "sfm_laserscale.report.writer", "write_scaled_colmap_model"),
     ("mesh_write", "sfm_laserscale.report.writer", "write_scaled_mesh"),
@@ -209,7 +209,7 @@ def case_inputs(work: Path, points: int, triangles: int, images: int,
 
 def scale_inputs(paths: dict[str, Path]) -> Any:
     """The ``ScaleInputs`` of a case's input paths (see ``case_inputs``)."""
-    from sfm_laserscale.pipeline import ScaleInputs
+    from sfm_laserscale.run_types import ScaleInputs
     return ScaleInputs(model=paths["model"], mesh=paths["mesh"], laser_images=(paths["lasers"],),
                        rig=paths["rig"], database=paths["database"])
 
@@ -292,23 +292,23 @@ def instrument(rec: dict[str, Any]) -> None:
 
 def _record_index(rec: dict[str, Any]) -> None:
     """Keep the descriptor index's search method and pool size (exact scan or IVF)."""
-    import sfm_laserscale.pipeline as pipeline
-    build = pipeline.build_index
+    import sfm_laserscale.commands.scale as scale_command
+    build = scale_command.build_index
 
     def recorded(*args: Any, **kwargs: Any) -> Any:
         index = build(*args, **kwargs)
         rec["index"] = {"method": index.method, "descriptors": index.num_descriptors,
                         "ivf_lists": index.ivf_lists, "ivf_probe": index.ivf_probe}
         return index
-    pipeline.build_index = recorded  # type: ignore[assignment]
-    crop = pipeline.crop_mesh
+    scale_command.build_index = recorded  # type: ignore[assignment]
+    crop = scale_command.crop_mesh
 
     def cropped(*args: Any, **kwargs: Any) -> Any:
         out = crop(*args, **kwargs)
         rec["crop"] = {"kept_triangles": len(out.triangles),
                        "kept_fraction": round(out.kept_fraction, 5)}
         return out
-    pipeline.crop_mesh = cropped  # type: ignore[assignment]
+    scale_command.crop_mesh = cropped  # type: ignore[assignment]
 
 
 def copy_seconds(src: Path, work: Path, repeat: int = 2) -> float:
@@ -327,8 +327,9 @@ def run_case(work: Path, points: int, triangles: int, images: int,
              camera: str = "vga", workers: int | None = None) -> dict[str, Any]:
     """Run the scale job on one case in this process; timings, memory, sizes and results.
     ``workers``: SIFT worker processes (None: the tool's default)."""
-    from sfm_laserscale.pipeline import ScaleOptions, run_scale
+    from sfm_laserscale.commands import scale as scale_command
     from sfm_laserscale.registration.sift_workers import SiftWorkerOptions
+    from sfm_laserscale.run_types import ScaleOptions
     paths = case_inputs(work, points, triangles, images, camera)
     rec: dict[str, Any] = {"seconds": {}, "peak_bytes": 0, "peak_stage": "", "stage_peak": {}}
     baseline = maxrss_bytes()  # interpreter + numpy/open3d/pycolmap/opencv imported
@@ -339,7 +340,7 @@ def run_case(work: Path, points: int, triangles: int, images: int,
     with tempfile.TemporaryDirectory(dir=work, prefix="out_") as tmp:
         t0 = time.perf_counter()
         try:
-            res = run_scale(inputs, Path(tmp) / "out", ScaleOptions(
+            res = scale_command.run(inputs, Path(tmp) / "out", ScaleOptions(
                 progress=False, sift_workers=SiftWorkerOptions(workers=workers)))
         except Exception as exc:  # report the stages timed so far with the error
             return {"case": {"points": points, "triangles": triangles, "images": images},
@@ -381,13 +382,14 @@ def fixed_library_memory(work: Path, camera: str = "vga") -> dict[str, int]:
     buffers, FAISS, the SIFT extractor, Embree, matplotlib, ...), whatever the input size."""
     import gc
 
+    from sfm_laserscale.commands import scale as scale_command
     from sfm_laserscale.memory import trim_heap
-    from sfm_laserscale.pipeline import ScaleOptions, run_scale
+    from sfm_laserscale.run_types import ScaleOptions
     cold = rss_bytes()
     paths = case_inputs(work, WARM["points"], WARM["triangles"], WARM["images"], camera)
     inputs = scale_inputs(paths)
     with tempfile.TemporaryDirectory(dir=work, prefix="warm_") as tmp:
-        run_scale(inputs, Path(tmp) / "out", ScaleOptions(progress=False))
+        scale_command.run(inputs, Path(tmp) / "out", ScaleOptions(progress=False))
     gc.collect()
     trim_heap()
     return {"cold_rss_bytes": cold, "warm_rss_bytes": rss_bytes()}
@@ -400,11 +402,11 @@ def sift_reference(work: Path, points: int = 100_000) -> dict[str, Any]:
 
     from sfm_laserscale.io.images import read_rgb
     from sfm_laserscale.io.models import load_model
-    from sfm_laserscale.pipeline import ScaleOptions
     from sfm_laserscale.registration.features import load_model_features
     from sfm_laserscale.registration.index import build_descriptor_index
     from sfm_laserscale.registration.match import match_to_model
     from sfm_laserscale.registration.sift import extract_sift
+    from sfm_laserscale.run_types import ScaleOptions
     paths = case_inputs(work, points, 100_000, 1)
     opts = ScaleOptions()
     model = load_model(paths["model"])

@@ -117,12 +117,12 @@ def ours_child(model: Path, database: Path, laser_dir: Path) -> dict[str, Any]:
     t0 = time.perf_counter()
     from sfm_laserscale.io.images import LaserImage, read_rgb
     from sfm_laserscale.io.models import load_model
-    from sfm_laserscale.pipeline import ScaleOptions
     from sfm_laserscale.registration.features import load_model_features
     from sfm_laserscale.registration.index import build_descriptor_index
     from sfm_laserscale.registration.pose import register_image
     from sfm_laserscale.registration.sift import extract_sift
     from sfm_laserscale.registration.sift_workers import start_sift_pool
+    from sfm_laserscale.run_types import ScaleOptions
     opts = ScaleOptions()
     t_import = time.perf_counter()
     m = load_model(model)
@@ -240,9 +240,9 @@ def compare_fixture(fixture: Path, work: Path, held_out: str = "03.jpg") -> dict
     from sfm_laserscale.io.colmap import model_without_images, read_colmap_model
     from sfm_laserscale.io.colmap_database import read_database_features
     from sfm_laserscale.io.colmap_write import write_colmap_model_binary
-    from sfm_laserscale.pipeline import ScaleOptions
     from sfm_laserscale.registration.index import build_descriptor_index
     from sfm_laserscale.registration.pose import register_image
+    from sfm_laserscale.run_types import ScaleOptions
     if work.exists():
         shutil.rmtree(work)
     work.mkdir(parents=True)

@@ -1,5 +1,5 @@
-"""Command line (DESIGN.md §5): thin click commands that build options and call one library
-function.
+"""Command line (docs/OUTPUTS.md): thin click commands that build the options and call one
+command's ``run`` (:mod:`sfm_laserscale.commands`).
 
 Exit status: 0 success; 1 the run finished but no scale could be estimated;
 2 bad usage or bad input (one line on stderr, no traceback without --debug);
@@ -161,7 +161,7 @@ _path = click.Path(path_type=Path)
 @common_options
 def scale(**kw: Any) -> int:
     """Estimate the model's metric scale and write the rescaled model, mesh and report."""
-    from sfm_laserscale.pipeline import ScaleInputs, ScaleOptions, run_scale
+    from sfm_laserscale.commands.scale import ScaleInputs, ScaleOptions, run
     from sfm_laserscale.registration.sift_workers import SiftWorkerOptions
 
     inputs = ScaleInputs(
@@ -176,7 +176,7 @@ def scale(**kw: Any) -> int:
     )
     options = ScaleOptions(method=kw["method"], seed=kw["seed"], progress=not kw["quiet"],
                            sift_workers=SiftWorkerOptions(workers=kw["workers"]))
-    result = run_scale(inputs, kw["out"], options, overwrite=kw["overwrite"])
+    result = run(inputs, kw["out"], options, overwrite=kw["overwrite"])
     click.echo(result.summary)
     return EXIT_OK if result.success else EXIT_NO_SCALE
 
@@ -191,7 +191,7 @@ def scale(**kw: Any) -> int:
 @common_options
 def demo(**kw: Any) -> int:
     """Complete synthetic run with no input data: render, SfM, laser images, then `scale`."""
-    from sfm_laserscale.demo import DemoOptions, run_demo
+    from sfm_laserscale.commands.demo import DemoOptions, run_demo
 
     options = DemoOptions(small=kw["small"], seed=kw["seed"], progress=not kw["quiet"])
     result = run_demo(kw["out"], options, overwrite=kw["overwrite"])
@@ -209,10 +209,10 @@ def demo(**kw: Any) -> int:
 @common_options
 def apply(**kw: Any) -> int:
     """Rescale a model and/or a mesh by a known scale; write them with the transform files."""
-    from sfm_laserscale.apply import ApplyInputs, ApplyOptions, apply_scale
+    from sfm_laserscale.commands.apply import ApplyInputs, ApplyOptions, run
 
-    result = apply_scale(ApplyInputs(model=kw["model"], mesh=kw["mesh"]), kw["out"],
-                         ApplyOptions(scale=kw["scale_value"]), overwrite=kw["overwrite"])
+    result = run(ApplyInputs(model=kw["model"], mesh=kw["mesh"]), kw["out"],
+                 ApplyOptions(scale=kw["scale_value"]), overwrite=kw["overwrite"])
     click.echo(result.summary)
     return EXIT_OK
 
@@ -227,11 +227,11 @@ def apply(**kw: Any) -> int:
 @common_options
 def detect(**kw: Any) -> int:
     """Detect laser spots: write spots.csv (for scale --spots), detections.json, overlays."""
-    from sfm_laserscale.detect_run import DetectInputs, run_detect
+    from sfm_laserscale.commands.detect import DetectInputs, run
 
     inputs = DetectInputs(images=tuple(kw["images"]), rig=kw["rig"], model=kw["model"],
                           camera=kw["camera"])
-    result = run_detect(inputs, kw["out"], overwrite=kw["overwrite"])
+    result = run(inputs, kw["out"], overwrite=kw["overwrite"])
     click.echo(result.summary)
     return EXIT_OK if result.success else EXIT_NO_SCALE
 
@@ -261,7 +261,7 @@ def detect(**kw: Any) -> int:
 def calibrate(**kw: Any) -> int:
     """Calibrate the laser rig from images of a chessboard or ChArUco board at several
     distances."""
-    from sfm_laserscale.calibrate_run import CalibrateInputs, CalibrateOptions, run_calibrate
+    from sfm_laserscale.commands.calibrate import CalibrateInputs, CalibrateOptions, run
 
     if (kw["model"] is None) == (not kw["self_calibrate"]):
         raise InputError("give exactly one of --model PATH or --self-calibrate")
@@ -279,8 +279,8 @@ def calibrate(**kw: Any) -> int:
         colors=tuple(c.strip() for c in kw["colors"].split(",")),
         target="charuco" if charuco else "chessboard", marker_m=kw["marker_size"],
         dictionary=kw["dictionary"])
-    result = run_calibrate(CalibrateInputs(images=tuple(kw["images"]), model=kw["model"]),
-                           kw["out"], options, overwrite=kw["overwrite"])
+    result = run(CalibrateInputs(images=tuple(kw["images"]), model=kw["model"]), kw["out"],
+                 options, overwrite=kw["overwrite"])
     click.echo(result.summary)
     return EXIT_OK
 

@@ -29,10 +29,11 @@ def small_dataset(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-
 
 @pytest.fixture(scope="session")
 def small_scale_run(small_dataset, tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
-    """One real ``scale`` run (run_scale, no progress bars) of ``small_dataset``, made once per
-    session; its ScaleResult (``out_dir`` holds every output). Tests must not modify it."""
-    from sfm_laserscale.demo import scale_inputs_for
-    from sfm_laserscale.pipeline import ScaleOptions, run_scale
+    """One real ``scale`` run (commands.scale.run, no progress bars) of ``small_dataset``, made
+    once per session; its ScaleResult (``out_dir`` holds every output). Tests must not modify it."""
+    from sfm_laserscale.commands import scale as scale_command
+    from sfm_laserscale.commands.demo import scale_inputs_for
+    from sfm_laserscale.run_types import ScaleOptions
 
     out = tmp_path_factory.mktemp("small_scale_run") / "out"
-    return run_scale(scale_inputs_for(small_dataset), out, ScaleOptions(progress=False))
+    return scale_command.run(scale_inputs_for(small_dataset), out, ScaleOptions(progress=False))

@@ -17,8 +17,9 @@ import plyfile
 import pytest
 from click.testing import CliRunner, Result
 
-from sfm_laserscale.apply import ApplyInputs, ApplyOptions, apply_scale
 from sfm_laserscale.cli import main
+from sfm_laserscale.commands import apply as apply_command
+from sfm_laserscale.commands.apply import ApplyInputs, ApplyOptions
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.colmap import read_colmap_model
 from sfm_laserscale.io.colmap_write import write_colmap_model_binary
@@ -176,8 +177,8 @@ def test_apply_openmvg_model_only(tmp_path: Path) -> None:
 
 
 def test_apply_then_inverse_restores_the_model(tmp_path: Path, colmap_bin: Path) -> None:
-    a = apply_scale(ApplyInputs(model=colmap_bin), tmp_path / "a", ApplyOptions(SCALE))
-    b = apply_scale(ApplyInputs(model=a.out_dir / "scaled" / "model"), tmp_path / "b",
+    a = apply_command.run(ApplyInputs(model=colmap_bin), tmp_path / "a", ApplyOptions(SCALE))
+    b = apply_command.run(ApplyInputs(model=a.out_dir / "scaled" / "model"), tmp_path / "b",
                     ApplyOptions(1.0 / SCALE))
     back, orig = read_colmap_model(b.out_dir / "scaled" / "model"), read_colmap_model(colmap_bin)
     np.testing.assert_allclose(back.points_xyz, orig.points_xyz, rtol=1e-14)
@@ -258,12 +259,12 @@ def test_apply_refuses_non_empty_out_unless_overwrite(tmp_path: Path) -> None:
 def test_apply_failure_keeps_previous_output(tmp_path: Path, colmap_bin: Path) -> None:
     """A run that fails half-way (the mesh after the model) leaves the old output as it was."""
     out = tmp_path / "out"
-    apply_scale(ApplyInputs(mesh=_ply(tmp_path / "m.ply")), out, ApplyOptions(2.0))
+    apply_command.run(ApplyInputs(mesh=_ply(tmp_path / "m.ply")), out, ApplyOptions(2.0))
     before = _digest(out)
     bad = tmp_path / "bad.obj"
     bad.write_text("v 1 2\nf 1 2 3\n")
     with pytest.raises(InputError):
-        apply_scale(ApplyInputs(model=colmap_bin, mesh=bad), out, ApplyOptions(3.0),
+        apply_command.run(ApplyInputs(model=colmap_bin, mesh=bad), out, ApplyOptions(3.0),
                     overwrite=True)
     assert _digest(out) == before
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out")]

@@ -15,7 +15,7 @@ from sfm_laserscale.beam_lines import (
     pseudo_beam,
     rig_with_learned_lines,
 )
-from sfm_laserscale.detect_run import DetectRunOptions, Frame, detect_many
+from sfm_laserscale.commands.detect import DetectRunOptions, Frame, detect_many
 from sfm_laserscale.detection import beam_polyline_px, distance_to_polyline
 from sfm_laserscale.model import Camera
 from sfm_laserscale.rig import rig_from_dict

@@ -10,12 +10,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from sfm_laserscale.calibrate_run import CalibrateOptions, CalibrateResult, calibrate_images
-from sfm_laserscale.demo import scale_inputs_for
+from sfm_laserscale.calibration.target import CalibrateOptions, CalibrateResult, calibrate_images
+from sfm_laserscale.commands import scale as scale_command
+from sfm_laserscale.commands.demo import scale_inputs_for
 from sfm_laserscale.io.images import camera_for_size
 from sfm_laserscale.io.models import load_model
-from sfm_laserscale.pipeline import ScaleOptions, run_scale
 from sfm_laserscale.rig import Laser, Pair, Rig, rig_to_toml
+from sfm_laserscale.run_types import ScaleOptions
 from sfm_laserscale.synthetic.calibration_images import (
     BoardSpec,
     board_pose,
@@ -78,8 +79,8 @@ def test_calibrated_rig_scales_demo_like_true_rig(
     rig_path.write_text(rig_to_toml(rig), encoding="utf-8")
     inputs = scale_inputs_for(small_dataset)
     opts = ScaleOptions(progress=False, overlays=False, method="fcm")
-    res_true = run_scale(inputs, tmp_path / "true", opts)
-    res_cal = run_scale(replace(inputs, rig=rig_path), tmp_path / "cal", opts)
+    res_true = scale_command.run(inputs, tmp_path / "true", opts)
+    res_cal = scale_command.run(replace(inputs, rig=rig_path), tmp_path / "cal", opts)
     s_true = small_dataset.true_scale
     assert res_true.success and res_cal.success
     for res in (res_true, res_cal):

@@ -11,9 +11,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from sfm_laserscale.calibrate_run import CalibrateOptions, CalibrateResult, calibrate_images
-from sfm_laserscale.calibrate_run import self_calibrate as self_cal
-from sfm_laserscale.calibration import (
+from sfm_laserscale.calibration.fit import (
     CalibrationOptions,
     Plane,
     SpotPoint,
@@ -21,6 +19,8 @@ from sfm_laserscale.calibration import (
     fit_line,
     ray_plane_points,
 )
+from sfm_laserscale.calibration.target import CalibrateOptions, CalibrateResult, calibrate_images
+from sfm_laserscale.calibration.target import self_calibrate as self_cal
 from sfm_laserscale.cli import main
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.model import Camera

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from sfm_laserscale.calibrate_run import (
+from sfm_laserscale.calibration.target import (
     CalibrateOptions,
     CalibrateResult,
     calibrate_images,

@@ -18,7 +18,8 @@ import numpy as np
 import pycolmap
 import pytest
 
-from sfm_laserscale.apply import ApplyInputs, ApplyOptions, apply_scale
+from sfm_laserscale.commands import apply as apply_command
+from sfm_laserscale.commands.apply import ApplyInputs, ApplyOptions
 from sfm_laserscale.io.colmap import read_colmap_model
 from sfm_laserscale.io.transforms import read_sim3
 from sfm_laserscale.model import SparseModel
@@ -82,7 +83,8 @@ def test_sim3_file_is_the_similarity_pycolmap_applies(tmp_path: Path,
                                                       pycolmap_model: Path) -> None:
     """transform.sim3 read as COLMAP's Sim3d (scale, qw qx qy qz, t) and applied by pycolmap
     gives exactly our rescaled model."""
-    res = apply_scale(ApplyInputs(model=pycolmap_model), tmp_path / "out", ApplyOptions(SCALE))
+    res = apply_command.run(ApplyInputs(model=pycolmap_model), tmp_path / "out",
+                            ApplyOptions(SCALE))
     s, q_wxyz, t = read_sim3(res.out_dir / "transform.sim3")
     sim3 = pycolmap.Sim3d(s, pycolmap.Rotation3d(np.r_[q_wxyz[1:], q_wxyz[0]]), t)
     rec = pycolmap.Reconstruction(pycolmap_model)
@@ -120,7 +122,7 @@ def test_colmap38_model_rescaled_passes_model_analyzer(tmp_path: Path, kind: str
                                                        colmap38_models: dict[str, Path]) -> None:
     src = colmap38_models[kind]
     _assert_same_model(read_colmap_model(src), read_colmap_model(COLMAP_TXT))  # our reader
-    res = apply_scale(ApplyInputs(model=src), tmp_path / "out", ApplyOptions(SCALE))
+    res = apply_command.run(ApplyInputs(model=src), tmp_path / "out", ApplyOptions(SCALE))
     scaled = res.out_dir / "scaled" / "model"
     before, after = analyzer_stats(src), analyzer_stats(scaled)
     assert after["Registered images"] == before["Registered images"] == 4
@@ -136,7 +138,7 @@ def test_colmap38_model_rescaled_passes_model_analyzer(tmp_path: Path, kind: str
 @needs_colmap
 def test_colmap38_reads_our_rescaled_binary_exactly(tmp_path: Path,
                                                     colmap38_models: dict[str, Path]) -> None:
-    res = apply_scale(ApplyInputs(model=colmap38_models["BIN"]), tmp_path / "out",
+    res = apply_command.run(ApplyInputs(model=colmap38_models["BIN"]), tmp_path / "out",
                       ApplyOptions(SCALE))
     txt = tmp_path / "as_text"
     txt.mkdir()
@@ -153,7 +155,7 @@ def test_colmap38_reads_our_rescaled_binary_exactly(tmp_path: Path,
 def test_colmap38_model_transformer_reads_transform_4x4(tmp_path: Path,
                                                         colmap38_models: dict[str, Path]) -> None:
     """COLMAP 3.8's model_transformer reads a 4x4 matrix: transform_4x4.txt gives our model."""
-    res = apply_scale(ApplyInputs(model=colmap38_models["TXT"]), tmp_path / "out",
+    res = apply_command.run(ApplyInputs(model=colmap38_models["TXT"]), tmp_path / "out",
                       ApplyOptions(SCALE))
     theirs = tmp_path / "transformed"
     theirs.mkdir()
@@ -170,7 +172,7 @@ def test_colmap38_cannot_read_the_sim3_file(tmp_path: Path,
     model_transformer exits 0 and writes a wrong (NaN) model."""
     if "COLMAP 3.8" not in _colmap("help"):
         pytest.skip("only COLMAP 3.8 reads a 4x4 matrix here")
-    res = apply_scale(ApplyInputs(model=colmap38_models["TXT"]), tmp_path / "out",
+    res = apply_command.run(ApplyInputs(model=colmap38_models["TXT"]), tmp_path / "out",
                       ApplyOptions(SCALE))
     theirs = tmp_path / "transformed"
     theirs.mkdir()

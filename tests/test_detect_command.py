@@ -15,7 +15,7 @@ from click.testing import CliRunner
 from script_loader import load_script
 
 from sfm_laserscale.cli import main
-from sfm_laserscale.detect_run import parse_camera
+from sfm_laserscale.commands.detect import parse_camera
 from sfm_laserscale.detection import DetectionOptions, DetectionResult, detect_spots
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.spots_csv import read_spots_csv

@@ -24,8 +24,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner, Result
 
-from sfm_laserscale import pipeline
 from sfm_laserscale.cli import main
+from sfm_laserscale.commands import scale as scale_command
 
 REPO = Path(__file__).resolve().parents[1]
 FIXTURES = REPO.parent / "shared" / "fixtures"
@@ -126,13 +126,13 @@ def invoke(args: list[str]) -> tuple[Result | None, bool]:
 @pytest.fixture()
 def stop_after_loading(monkeypatch: pytest.MonkeyPatch) -> None:
     """``scale`` reads and checks every input as usual, then stops (raises Accepted)."""
-    real = pipeline.load_inputs
+    real = scale_command.load_inputs
 
     def load_then_stop(inputs: Any, options: Any) -> Any:
         real(inputs, options)
         raise Accepted
 
-    monkeypatch.setattr(pipeline, "load_inputs", load_then_stop)
+    monkeypatch.setattr(scale_command, "load_inputs", load_then_stop)
 
 
 def scale_args(ds: Any, out: Path, **over: Path) -> list[str]:

@@ -426,7 +426,7 @@ def test_two_pairs_are_combined_with_their_shared_noise():
 
 
 def _runs(obs: list[ImageObservation], rig: Rig) -> list[Any]:
-    from sfm_laserscale.pipeline import ImageRun
+    from sfm_laserscale.run_types import ImageRun
 
     return [ImageRun(name=o.image, path=None, camera=o.camera,  # type: ignore[arg-type]
                      registration=SimpleNamespace(cam_from_world=o.cam_from_world,  # type: ignore[arg-type]
@@ -438,7 +438,8 @@ def _runs(obs: list[ImageObservation], rig: Rig) -> list[Any]:
 
 @pytest.mark.parametrize("n_images, headline", [(N_VIEWS, "pcm_joint"), (2, "pcm")])
 def test_pipeline_headline_is_pcm_joint_when_available(scene, n_images, headline):
-    from sfm_laserscale.pipeline import ScaleOptions, fuse_all
+    from sfm_laserscale.commands.scale import fuse_all
+    from sfm_laserscale.run_types import ScaleOptions
 
     ter, views, pose_cov = scene
     rig = pcm_rig()

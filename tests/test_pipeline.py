@@ -8,10 +8,11 @@ from typing import Any
 
 import pytest
 
-from sfm_laserscale.demo import scale_inputs_for
+from sfm_laserscale.commands import scale as scale_command
+from sfm_laserscale.commands.demo import scale_inputs_for
 from sfm_laserscale.io.colmap_write import write_scaled_colmap_model
 from sfm_laserscale.io.meshes.mesh import write_scaled_mesh
-from sfm_laserscale.pipeline import ScaleOptions, run_scale
+from sfm_laserscale.run_types import ScaleOptions
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +38,7 @@ def test_rescaled_model_and_mesh_change_scale_by_inverse(baseline: Any, small_da
     from dataclasses import replace
 
     inputs = replace(inputs, model=model, mesh=tmp_path / "mesh" / small_dataset.mesh_path.name)
-    res = run_scale(inputs, tmp_path / "run", ScaleOptions(progress=False))
+    res = scale_command.run(inputs, tmp_path / "run", ScaleOptions(progress=False))
     assert res.success
     # Not bit-exact: the pose refinement's stopping tolerances are not scale-free (seen 6e-6).
     assert res.scale.value == pytest.approx(baseline.scale.value / k, rel=1e-4)
@@ -95,13 +96,13 @@ def test_mesh_check_on_the_crop_is_the_whole_mesh_check(baseline: Any,
 
     import numpy as np
 
-    from sfm_laserscale.io.meshes.mesh import TriangleMesh
-    from sfm_laserscale.pipeline import (
+    from sfm_laserscale.commands.scale import (
         crop_mesh,
         load_inputs,
         mesh_check_points,
         mesh_model_agreement,
     )
+    from sfm_laserscale.io.meshes.mesh import TriangleMesh
     from sfm_laserscale.raycast import MeshRaycaster
 
     opts = ScaleOptions(progress=False)

@@ -731,7 +731,7 @@ def test_real_run_log_holds_pycolmap_messages(real_run: Path, small_dataset: Any
     log = (real_run / "run.log").read_text()
     head, marker, tail = log.partition("---- pycolmap's own log (glog")
     assert marker, "no pycolmap section in run.log"
-    assert "sfm_laserscale.pipeline: run finished" in head
+    assert "sfm_laserscale.commands.scale: run finished" in head
     lines = [ln for ln in tail.splitlines()[1:] if ln]
     assert lines and all(ln.startswith("pycolmap: ") for ln in lines)
     n_laser = len(list(small_dataset.laser_images_dir.glob("*.png")))

@@ -103,7 +103,7 @@ def test_forced_on_bar_reports_the_mesh_writing(
 ) -> None:
     """The writer's scaled-mesh bar, on a (fake) terminal, counts the mesh to 100 %."""
     import sfm_laserscale.report.writer as writer
-    from sfm_laserscale.demo import scale_inputs_for
+    from sfm_laserscale.commands.demo import scale_inputs_for
     from sfm_laserscale.report.writer import _write_scaled
 
     bars: list[Any] = []
@@ -169,7 +169,7 @@ def _run_in_terminal(args: list[str], timeout: float = 240.0) -> tuple[int, str]
 def test_pipeline_bar_on_a_terminal(monkeypatch: pytest.MonkeyPatch) -> None:
     """The per-laser-image bar (detection, SIFT, matching, registration) draws on a terminal."""
     def _progress(items: list[int], enabled: bool, desc: str) -> Any:
-        return progress_bar(enabled, desc, iterable=items, unit="img")  # as run_scale does
+        return progress_bar(enabled, desc, iterable=items, unit="img")  # as scale.run does
 
     term = FakeTerminal()
     monkeypatch.setattr(sys, "stderr", term)

@@ -221,7 +221,7 @@ def test_scale_with_and_without_workers_gives_the_same_report(small_dataset: Any
                                                               tmp_path: Path) -> None:
     """``scale --workers 0`` and ``--workers 2`` (CliRunner): the same numbers; the report
     says how the SIFT time was shared."""
-    from sfm_laserscale.demo import scale_inputs_for
+    from sfm_laserscale.commands.demo import scale_inputs_for
 
     inputs = scale_inputs_for(small_dataset)
     reports = {}

@@ -14,7 +14,7 @@ Stages (each a function below):
    is built from the sparse 3D points (Debian's COLMAP has no CUDA and no CGAL, so neither
    ``patch_match_stereo`` nor ``delaunay_mesher`` runs there). It interpolates the sparse
    points only: laser hits between them are as good as the surface is smooth there.
-3. The scale stage, ``sfm_laserscale.pipeline.run_scale`` (exactly what ``sfm-laserscale
+3. The scale stage, ``sfm_laserscale.commands.scale.run`` (exactly what ``sfm-laserscale
    scale`` runs), with the SfM database for the model's descriptors.
 
 Outputs in OUT::
@@ -46,11 +46,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from sfm_laserscale.commands import scale as scale_command
+from sfm_laserscale.commands.scale import ScaleInputs, ScaleOptions, ScaleResult
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.colmap import read_colmap_model
 from sfm_laserscale.io.images import IMAGE_SUFFIXES
 from sfm_laserscale.model import INVALID_POINT3D_ID, SparseModel
-from sfm_laserscale.pipeline import ScaleInputs, ScaleOptions, ScaleResult, run_scale
 
 logger = logging.getLogger("sfm_laserscale.plugins.colmap")
 
@@ -495,9 +496,9 @@ def run_colmap_plugin(inputs: PluginInputs, out_dir: Path,
         logger.warning("no --mesh: a COARSE mesh (%s, %d triangles) was built from the sparse "
                        "points; give an MVS mesh for the best scale", options.mesh.method,
                        len(triangles))
-    scale = run_scale(ScaleInputs(model=sfm.model_dir, mesh=mesh_path,
-                                  laser_images=inputs.laser_images, rig=inputs.rig,
-                                  database=sfm.database), out_dir / "scale", options.scale)
+    scale = scale_command.run(ScaleInputs(model=sfm.model_dir, mesh=mesh_path,
+                                          laser_images=inputs.laser_images, rig=inputs.rig,
+                                          database=sfm.database), out_dir / "scale", options.scale)
     summary = (f"SfM ({sfm.backend}): {sfm.n_registered}/{sfm.n_images} images, "
                f"{sfm.n_points} points; mesh: {'coarse ' if coarse else ''}{mesh_path.name}; "
                f"{scale.summary}")

@@ -10,6 +10,7 @@ so they never hide the image.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -17,7 +18,12 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from sfm_laserscale.detection import DetectionResult, beam_polyline_px
+from sfm_laserscale.detection import (
+    DetectionOptions,
+    DetectionResult,
+    beam_polyline_px,
+    default_band_px,
+)
 from sfm_laserscale.model import Camera, Pose, Spot
 from sfm_laserscale.report.style import INLIER_HEX, WARNING_HEX, hex_to_bgr, laser_color_bgr
 from sfm_laserscale.rig import Rig
@@ -365,6 +371,26 @@ def near_misses(result: DetectionResult | None) -> dict[str, list[NearMiss]]:
         return {}
     return {name: [(c.x, c.y, c.score) for c in cands]
             for name, cands in result.near_misses.items() if cands}
+
+
+def draw_bands(rgb: NDArray[np.uint8], camera: Camera, rig: Rig, options: DetectionOptions
+               ) -> NDArray[np.uint8]:
+    """Copy of ``rgb`` with each searched beam band (segment ± band_px) shaded and outlined."""
+    band = options.band_px or default_band_px(camera.width, camera.height)
+    out = rgb.copy()
+    mask = np.zeros(rgb.shape[:2], np.uint8)
+    for las in rig.lasers:
+        line = beam_polyline_px(camera, las, options.min_range_m, options.max_range_m)
+        if len(line) < 2:
+            continue
+        # COLMAP px -> OpenCV drawing coordinates: subtract 0.5 (4 fractional bits)
+        pts = np.round((line - 0.5) * 16).astype(np.int32).reshape(-1, 1, 2)
+        cv2.polylines(mask, [pts], False, 255, 2 * int(math.ceil(band)), cv2.LINE_8, 4)
+    shade = mask > 0
+    out[shade] = (0.7 * out[shade] + 0.3 * 255).astype(np.uint8)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    cv2.drawContours(out, contours, -1, (255, 255, 0), 1, cv2.LINE_AA)
+    return out
 
 
 def draw_overlay(

@@ -11,12 +11,13 @@ import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
 
 from sfm_laserscale import __version__
+from sfm_laserscale.fusion import FusedScale
 from sfm_laserscale.geometry import qvec_from_rotmat
 from sfm_laserscale.io.colmap_write import write_scaled_colmap_model
 from sfm_laserscale.io.images import read_rgb
@@ -24,16 +25,13 @@ from sfm_laserscale.io.meshes.mesh import write_scaled_mesh
 from sfm_laserscale.io.openmvg import write_scaled_openmvg_sfm_data
 from sfm_laserscale.io.spots_csv import write_spots_csv
 from sfm_laserscale.io.transforms import write_matrix_4x4, write_sim3
+from sfm_laserscale.methods.pcm_joint import PairJointFit, PcmJointResult
 from sfm_laserscale.provenance import progress_bar
 from sfm_laserscale.report.analysis import ReportChecksOptions, annotate
 from sfm_laserscale.report.html import render_html
 from sfm_laserscale.report.overlays import draw_overlay, near_misses, reprojected_points
 from sfm_laserscale.report.validate import check_html
-
-if TYPE_CHECKING:
-    from sfm_laserscale.fusion import FusedScale
-    from sfm_laserscale.methods.pcm_joint import PairJointFit, PcmJointResult
-    from sfm_laserscale.pipeline import ImageRun, LoadedInputs, ScaleInputs, ScaleOptions, Timer
+from sfm_laserscale.run_types import ImageRun, LoadedInputs, ScaleInputs, ScaleOptions, Timer
 
 logger = logging.getLogger(__name__)
 

@@ -1,27 +1,25 @@
-"""`sfm-laserscale calibrate`: laser rig calibration from images of a chessboard or ChArUco target.
+"""Laser rig calibration from images of a chessboard or ChArUco target held at several
+distances: ``calibrate_images`` gives the calibrated rig, the camera and a report.
 
 Per image: chessboard or ChArUco corners (OpenCV, +0.5 px to COLMAP's convention; ChArUco
 corners carry ids, so partial views of the board give a pose too) -> target pose (PnP on
 undistorted corners) -> plane; laser-colour spot candidates on the board (the detector's
 candidate machinery with a provisional uncalibrated rig) -> rays -> 3D points on the plane.
-Then :func:`sfm_laserscale.calibration.calibrate_rig` tracks and fits the beams. Writes
-``rig.toml`` and ``calibration_report.json``.
+Then :func:`sfm_laserscale.calibration.fit.calibrate_rig` tracks and fits the beams.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from sfm_laserscale.calibration import (
+from sfm_laserscale.calibration.fit import (
     CalibrationOptions,
     CalibrationResult,
     SpotPoint,
@@ -34,23 +32,12 @@ from sfm_laserscale.calibration import (
 )
 from sfm_laserscale.detection import DetectionOptions, detect_spots
 from sfm_laserscale.errors import InputError
-from sfm_laserscale.io.images import camera_for_size, expand_image_paths, read_rgb
-from sfm_laserscale.io.models import load_model
-from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
 from sfm_laserscale.model import Camera, Pose
-from sfm_laserscale.rig import COLORS, Laser, Rig, rig_to_toml
+from sfm_laserscale.rig import COLORS, Laser, Rig
 
 logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class CalibrateInputs:
-    """Target images (files/folders) and where the intrinsics come from."""
-
-    images: tuple[Path, ...]
-    model: Path | None = None  # COLMAP folder / OpenMVG sfm_data.json; None = self-calibrate
 
 
 @dataclass(frozen=True)
@@ -355,37 +342,3 @@ def build_report(result: CalibrationResult, camera: Camera,
         "pair_angles_deg": {f"{a}-{b}": v for (a, b), v in result.pair_angles_deg.items()},
         "images": per_image,
     }
-
-
-# ----------------------------------------------------------------------------- files
-
-
-def _camera_from_model(model_path: Path, width: int, height: int) -> Camera:
-    cam = camera_for_size(load_model(model_path), width, height)
-    if cam is None:
-        raise InputError(f"no camera of the model is {width}x{height} px (the target images' "
-                         "size); use --self-calibrate", model_path)
-    return cam
-
-
-def run_calibrate(inputs: CalibrateInputs, out: Path, options: CalibrateOptions,
-                  overwrite: bool = False) -> CalibrateResult:
-    """Read the target images, calibrate, write rig.toml and calibration_report.json."""
-    check_output_dir(out, overwrite)
-    if not inputs.images:
-        raise InputError("no target images given")
-    files = expand_image_paths(list(inputs.images))
-    images = {f.name: read_rgb(f) for f in files}
-    if len(images) != len(files):
-        raise InputError("several target images share a file name")
-    sizes = {im.shape[:2] for im in images.values()}
-    if len(sizes) != 1:
-        raise InputError(f"target images have different sizes: {sorted(sizes)}")
-    h, w = next(iter(sizes))
-    camera = None if inputs.model is None else _camera_from_model(inputs.model, w, h)
-    result = calibrate_images(images, camera, options)
-    with staged_output_dir(out, overwrite) as tmp:
-        (tmp / "rig.toml").write_text(rig_to_toml(result.calibration.rig), encoding="utf-8")
-        (tmp / "calibration_report.json").write_text(json.dumps(result.report, indent=2),
-                                                     encoding="utf-8")
-    return result

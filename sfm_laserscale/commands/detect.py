@@ -17,7 +17,6 @@ from __future__ import annotations
 import functools
 import json
 import logging
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,21 +34,17 @@ from sfm_laserscale.beam_lines import (
     learn_beam_lines,
     rig_with_learned_lines,
 )
-from sfm_laserscale.detection import (
-    DetectionOptions,
-    DetectionResult,
-    beam_polyline_px,
-    default_band_px,
-    detect_spots,
-)
+from sfm_laserscale.detection import DetectionOptions, DetectionResult, detect_spots
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
 from sfm_laserscale.io.models import load_model
 from sfm_laserscale.io.outputs import staged_output_dir
 from sfm_laserscale.io.spots_csv import write_spots_csv
 from sfm_laserscale.model import CAMERA_MODEL_IDS, Camera, SparseModel, Spot
-from sfm_laserscale.report.overlays import draw_overlay, near_misses
+from sfm_laserscale.report.overlays import draw_bands, draw_overlay, near_misses
 from sfm_laserscale.rig import Rig, load_rig
+
+__all__ = ["DetectInputs", "DetectRunOptions", "DetectRunResult", "run"]
 
 logger = logging.getLogger(__name__)
 
@@ -194,26 +189,6 @@ def _lines_record(learned: BeamLinesResult | None) -> dict[str, Any] | None:
             "missing": learned.missing}
 
 
-def draw_bands(rgb: NDArray[np.uint8], camera: Camera, rig: Rig, options: DetectionOptions
-               ) -> NDArray[np.uint8]:
-    """Copy of ``rgb`` with each searched beam band (segment ± band_px) shaded and outlined."""
-    band = options.band_px or default_band_px(camera.width, camera.height)
-    out = rgb.copy()
-    mask = np.zeros(rgb.shape[:2], np.uint8)
-    for las in rig.lasers:
-        line = beam_polyline_px(camera, las, options.min_range_m, options.max_range_m)
-        if len(line) < 2:
-            continue
-        # COLMAP px -> OpenCV drawing coordinates: subtract 0.5 (4 fractional bits)
-        pts = np.round((line - 0.5) * 16).astype(np.int32).reshape(-1, 1, 2)
-        cv2.polylines(mask, [pts], False, 255, 2 * int(math.ceil(band)), cv2.LINE_8, 4)
-    shade = mask > 0
-    out[shade] = (0.7 * out[shade] + 0.3 * 255).astype(np.uint8)
-    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    cv2.drawContours(out, contours, -1, (255, 255, 0), 1, cv2.LINE_AA)
-    return out
-
-
 def _write_overlay(path: Path, li: LaserImage, rig: Rig, res: DetectionResult,
                    options: DetectionOptions) -> None:
     """overlays/<stem>.jpg: bands, beams, spots, and each spot's score."""
@@ -241,9 +216,9 @@ def _summary(spots: dict[str, tuple[Spot, ...]], n_images: int, review: int,
     return text
 
 
-def run_detect(inputs: DetectInputs, out_dir: Path,
-               options: DetectRunOptions = DetectRunOptions(),  # noqa: B008 (frozen)
-               overwrite: bool = False) -> DetectRunResult:
+def run(inputs: DetectInputs, out_dir: Path,
+        options: DetectRunOptions = DetectRunOptions(),  # noqa: B008 (frozen)
+        overwrite: bool = False) -> DetectRunResult:
     """Detect spots in every image and write spots.csv, detections.json and overlays."""
     rig = load_rig(inputs.rig)
     images = find_laser_images(list(inputs.images), _camera_model(inputs))

@@ -8,8 +8,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from sfm_laserscale.commands.scale import ScaleResult
+from sfm_laserscale.commands.scale import run as run_scale
 from sfm_laserscale.io.outputs import check_output_dir
-from sfm_laserscale.pipeline import ScaleInputs, ScaleOptions, ScaleResult, run_scale
+from sfm_laserscale.run_types import ScaleInputs, ScaleOptions
 from sfm_laserscale.synthetic.dataset import DemoDataOptions, DemoDataset, make_demo_dataset
 
 logger = logging.getLogger(__name__)

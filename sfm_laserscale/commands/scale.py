@@ -1,26 +1,31 @@
-"""The scale job: chains readers -> detection -> registration -> ray casting -> methods ->
-fusion -> writers. It owns no maths; each stage is a function of its own module.
+"""``scale``: the model's metric scale from its laser images, and every output written.
+
+Chains readers -> detection -> registration -> ray casting -> methods -> fusion -> writers. It
+owns no maths; each stage is a function of its own module. ``run`` is the whole command; its
+inputs and options (:class:`~sfm_laserscale.run_types.ScaleInputs`,
+:class:`~sfm_laserscale.run_types.ScaleOptions`) are shared with the report writer, so they live
+in :mod:`sfm_laserscale.run_types`.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from sfm_laserscale import __version__
-from sfm_laserscale.detection import DetectionOptions, DetectionResult, detect_spots
+from sfm_laserscale.detection import DetectionResult, detect_spots
 from sfm_laserscale.errors import InputError
-from sfm_laserscale.fusion import FusedScale, FusionOptions, fuse
+from sfm_laserscale.fusion import FusedScale, fuse
 from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
 from sfm_laserscale.io.meshes.mesh import TriangleMesh, load_mesh
 from sfm_laserscale.io.models import load_model
+from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
 from sfm_laserscale.io.spots_csv import read_spots_csv
 from sfm_laserscale.memory import trim_heap
 from sfm_laserscale.methods.pcm_joint import (
@@ -39,11 +44,8 @@ from sfm_laserscale.provenance import (
     run_log_text,
 )
 from sfm_laserscale.raycast import (
-    CropOptions,
     MeshCrop,
     MeshRaycaster,
-    SpotCastOptions,
-    SpotHit,
     cast_spots,
     crop_for_rays,
     pixel_rays,
@@ -51,97 +53,18 @@ from sfm_laserscale.raycast import (
 )
 from sfm_laserscale.registration.features import open_model_features
 from sfm_laserscale.registration.index import DescriptorIndex, build_index, select_index_candidates
-from sfm_laserscale.registration.options import (
-    IndexOptions,
-    RegistrationOptions,
-    SiftOptions,
-    TieOptions,
-)
-from sfm_laserscale.registration.pose import RegistrationResult, register_image
+from sfm_laserscale.registration.pose import register_image
 from sfm_laserscale.registration.sift import extract_sift
-from sfm_laserscale.registration.sift_workers import SiftPool, SiftWorkerOptions, start_sift_pool
+from sfm_laserscale.registration.sift_workers import start_sift_pool
+from sfm_laserscale.report.writer import build_report, summary_line, write_outputs
 from sfm_laserscale.rig import Rig, load_rig
-from sfm_laserscale.uncertainty import (
-    EstimationOptions,
-    ImageEstimates,
-    ImageObservation,
-    estimate_image,
-)
+from sfm_laserscale.run_types import ImageRun, LoadedInputs, ScaleInputs, ScaleOptions, Timer
+from sfm_laserscale.uncertainty import ImageObservation, estimate_image
+
+__all__ = ["ScaleInputs", "ScaleOptions", "ScaleResult", "run"]
 
 logger = logging.getLogger(__name__)
 METHODS = ("fcm", "pcm", "direct3d")
-
-
-@dataclass(frozen=True)
-class ScaleInputs:
-    """Paths given to ``scale`` (DESIGN.md §5)."""
-
-    model: Path
-    mesh: Path
-    laser_images: tuple[Path, ...]
-    rig: Path
-    images: Path | None = None
-    database: Path | None = None
-    features: Path | None = None
-    spots: Path | None = None
-
-
-@dataclass(frozen=True)
-class ScaleOptions:
-    """Options of the scale job; each stage's options are nested."""
-
-    method: str = "all"  # fcm | pcm | all (the headline method's candidates)
-    seed: int = 0
-    progress: bool = True
-    overlays: bool = True
-    detection: DetectionOptions = field(default_factory=DetectionOptions)
-    sift: SiftOptions = field(default_factory=SiftOptions)
-    sift_workers: SiftWorkerOptions = field(default_factory=SiftWorkerOptions)
-    tie: TieOptions = field(default_factory=TieOptions)
-    index: IndexOptions = field(default_factory=IndexOptions)
-    registration: RegistrationOptions = field(default_factory=RegistrationOptions)
-    spot_cast: SpotCastOptions = field(default_factory=SpotCastOptions)
-    crop: CropOptions = field(default_factory=CropOptions)
-    # the mesh–model check: inlier points within mesh_check_near (share of the model's extent)
-    # of a spot's ray, at least mesh_check_min_points of them (the nearest), at most
-    # mesh_check_points (a seeded subset); exact up to mesh_check_radius (2× its limit)
-    mesh_check_near: float = 0.02
-    mesh_check_min_points: int = 50
-    mesh_check_points: int = 20000
-    mesh_check_radius: float = 0.01
-    estimation: EstimationOptions = field(default_factory=EstimationOptions)
-    fusion: FusionOptions = field(default_factory=FusionOptions)
-
-
-@dataclass(frozen=True)
-class LoadedInputs:
-    """Everything read from disk before the per-image work."""
-
-    model: SparseModel  # without its images' 2D observations (the index holds what is needed)
-    mesh: TriangleMesh | None  # None once cropped (run_scale releases it: peak memory)
-    rig: Rig
-    laser_images: tuple[LaserImage, ...]
-    manual_spots: dict[str, list[Spot]]
-    index: DescriptorIndex | None  # None once every laser image is registered (peak memory)
-    descriptors_indexed: int  # the index's size, for the report
-    # worker processes extracting the laser images' SIFT meanwhile; run_scale closes it
-    sift_pool: SiftPool | None = None
-
-
-@dataclass(frozen=True)
-class ImageRun:
-    """What happened to one laser image (kept whether it worked or not)."""
-
-    name: str
-    path: Path
-    camera: Camera | None
-    registration: RegistrationResult | None
-    detection: DetectionResult | None
-    spots: tuple[Spot, ...]
-    hits: tuple[SpotHit, ...]
-    spot_reasons: dict[str, str]  # laser -> why it has no usable hit
-    estimates: ImageEstimates | None
-    reason: str | None  # why the image gave no estimate, None when it did
 
 
 @dataclass(frozen=True)
@@ -155,33 +78,6 @@ class ScaleResult:
     report: dict[str, Any]
     out_dir: Path
     summary: str
-
-
-class Timer:
-    """Wall time per named stage (seconds), summed over calls."""
-
-    def __init__(self) -> None:
-        self.seconds: dict[str, float] = {}
-        self._start = time.perf_counter()
-
-    @contextmanager
-    def __call__(self, stage: str) -> Iterator[None]:
-        t0 = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - t0
-
-    def as_dict(self) -> dict[str, float]:
-        out = {
-            k: round(self.seconds.get(k, 0.0), 4)
-            for k in ("load", "detect", "register", "raycast", "estimate", "write")
-        }
-        for k in ("sift_here", "sift_in_workers"):  # when worker processes shared the SIFT
-            if k in self.seconds:
-                out[k] = round(self.seconds[k], 4)
-        out["total"] = round(time.perf_counter() - self._start, 4)
-        return out
 
 
 def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
@@ -271,7 +167,7 @@ def detect_and_register(image: LaserImage, loaded: LoadedInputs, options: ScaleO
     with timer("detect"):
         spots, det, spot_reasons = _spots_for(image.name, rgb, camera, loaded, options)
     if loaded.index is None:
-        raise ValueError("the descriptor index was released: register before run_scale drops it")
+        raise ValueError("the descriptor index was released: register before scale.run drops it")
     with timer("register"):
         pool = loaded.sift_pool
         feats = (extract_sift(rgb, options.sift) if pool is None
@@ -477,16 +373,13 @@ def _provenance_inputs(inputs: ScaleInputs, loaded: LoadedInputs) -> list[Path |
             *(li.path for li in loaded.laser_images)]
 
 
-def run_scale(
+def run(
     inputs: ScaleInputs,
     out_dir: Path,
     options: ScaleOptions = ScaleOptions(),  # noqa: B008
     overwrite: bool = False,
 ) -> ScaleResult:
     """The whole ``scale`` command: estimate, fuse and write every output of DESIGN.md §6."""
-    from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
-    from sfm_laserscale.report.writer import build_report, summary_line, write_outputs
-
     check_output_dir(out_dir, overwrite)
     timer = Timer()
     with captured_log() as log_lines, captured_colmap_log() as colmap_log:

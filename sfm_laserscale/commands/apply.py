@@ -26,6 +26,8 @@ from sfm_laserscale.io.openmvg import write_scaled_openmvg_sfm_data
 from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
 from sfm_laserscale.io.transforms import write_matrix_4x4, write_sim3
 
+__all__ = ["ApplyInputs", "ApplyOptions", "ApplyResult", "run"]
+
 logger = logging.getLogger(__name__)
 
 #: File name of the rescaled OpenMVG model inside ``scaled/model/`` (as ``scale`` writes it).
@@ -96,8 +98,8 @@ def _final(paths: list[Path], tmp: Path, out: Path) -> tuple[Path, ...]:
     return tuple(out / p.relative_to(tmp) for p in paths)
 
 
-def apply_scale(inputs: ApplyInputs, out_dir: Path, options: ApplyOptions,
-                overwrite: bool = False) -> ApplyResult:
+def run(inputs: ApplyInputs, out_dir: Path, options: ApplyOptions,
+        overwrite: bool = False) -> ApplyResult:
     """Rescale the model and/or mesh by ``options.scale`` and write them with the transforms."""
     scale = check_scale(options.scale)
     check_apply_inputs(inputs)
