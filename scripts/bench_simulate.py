@@ -31,13 +31,13 @@ from typing import Any
 
 import numpy as np
 
+from sfm_laserscale.commands import simulate as simulate_command
 from sfm_laserscale.resources import available_cpus
 from sfm_laserscale.rig import rig_to_toml
-from sfm_laserscale.synthetic.simulate import (
+from sfm_laserscale.synthetic.simulate.configs import (
     SimulationInputs,
     SimulationOptions,
     config_rig,
-    run_simulation,
 )
 
 RUNS: dict[str, SimulationOptions] = {
@@ -74,7 +74,7 @@ def bench(name: str, out: Path, workers: int) -> dict[str, Any]:
     options = replace(RUNS[name], workers=workers, progress=False)
     inputs = SimulationInputs(rig=rig_b33(out) if name == "noise_b33" else None)
     t0, cpu0 = time.perf_counter(), time.process_time() + _cpu_children()
-    result = run_simulation(inputs, out / name, options, overwrite=True)
+    result = simulate_command.run(inputs, out / name, options, overwrite=True)
     wall = time.perf_counter() - t0
     cpu = time.process_time() + _cpu_children() - cpu0
     return {"wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "workers": workers,

@@ -329,20 +329,21 @@ class _SimulateCommand(GreedyCommand):
 def simulate(**kw: Any) -> int:
     """The paper's synthetic experiments through the code of `scale`: results.json, table.md,
     trials.csv.gz and figures (errors in % of the true scale, reported sigma vs Monte Carlo)."""
+    from sfm_laserscale.commands.simulate import SimulationInputs, SimulationOptions, run
     from sfm_laserscale.resources import available_cpus
-    from sfm_laserscale.synthetic import simulate as sim
+    from sfm_laserscale.synthetic.simulate.configs import pinhole_camera
 
-    options = sim.SimulationOptions(
+    options = SimulationOptions(
         mode=kw["mode"], configs=tuple(kw["configs"]) or None,
         distances_m=tuple(kw["distances"]) or (2.0, 3.0, 4.0), trials=kw["trials"],
         sigma_f_px=tuple(kw["sigma_f"]) or None, sigma_l_px=tuple(kw["sigma_l"]) or None,
         outlier_ratio=kw["outliers"], group_size=kw["group_size"],
         max_angle_deg=kw["max_angle"], angle_step_deg=kw["angle_step"],
-        camera=sim.pinhole_camera(*kw["camera"]), antithetic=kw["antithetic"],
+        camera=pinhole_camera(*kw["camera"]), antithetic=kw["antithetic"],
         workers=kw["workers"] or available_cpus(), seed=kw["seed"],
         progress=not kw["quiet"])
-    result = sim.run_simulation(sim.SimulationInputs(rig=kw["rig"], mesh=kw["mesh"]), kw["out"],
-                                options, overwrite=kw["overwrite"])
+    result = run(SimulationInputs(rig=kw["rig"], mesh=kw["mesh"]), kw["out"], options,
+                 overwrite=kw["overwrite"])
     click.echo(result.summary)
     return EXIT_OK if len(result.collected.table) else EXIT_NO_SCALE
 

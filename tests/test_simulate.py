@@ -22,24 +22,18 @@ from sfm_laserscale.errors import InputError
 from sfm_laserscale.model import Pose
 from sfm_laserscale.raycast import MeshRaycaster
 from sfm_laserscale.synthetic.dataset import make_rig, write_mesh_ply
-from sfm_laserscale.synthetic.simulate import (
+from sfm_laserscale.synthetic.simulate.areas import SimScene, build_scene, load_scene
+from sfm_laserscale.synthetic.simulate.configs import (
     LaserSetting,
-    SimScene,
     SimulationInputs,
     SimulationOptions,
-    TrialContext,
-    ViewJob,
-    build_scene,
     config_rig,
     default_camera,
-    grid_angles,
     is_parallel_axis_rig,
-    load_scene,
-    run_trial,
-    simulate,
-    true_spots,
-    view_pose,
 )
+from sfm_laserscale.synthetic.simulate.runner import simulate
+from sfm_laserscale.synthetic.simulate.trial import TrialContext, run_trial, true_spots
+from sfm_laserscale.synthetic.simulate.views import ViewJob, grid_angles, view_pose
 
 TRIALS = 200  # per cell of the Monte-Carlo checks
 RATIO = (0.8, 1.25)  # std / mean reported σ

@@ -9,7 +9,6 @@ distances (:mod:`sfm_laserscale.calibration`). Writes, atomically (a staged fold
 from __future__ import annotations
 
 import json
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,8 +21,6 @@ from sfm_laserscale.model import Camera
 from sfm_laserscale.rig import rig_to_toml
 
 __all__ = ["CalibrateInputs", "CalibrateOptions", "CalibrateResult", "run"]
-
-logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)

@@ -10,17 +10,19 @@ from __future__ import annotations
 
 import io
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import matplotlib
 import numpy as np
 from numpy.typing import NDArray
 
+from sfm_laserscale.synthetic.simulate.runner import SimulationResult
+from sfm_laserscale.synthetic.simulate.stats import antithetic_pairs, grid_maps, method_rows
+from sfm_laserscale.synthetic.simulate.tables import method_label
+from sfm_laserscale.synthetic.simulate.views import grid_angles
+
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-
-if TYPE_CHECKING:
-    from sfm_laserscale.synthetic.simulate import SimulationResult
 
 F64 = NDArray[np.float64]
 DPI = 90
@@ -168,16 +170,12 @@ Z_METHODS = ("fcm", "fcm_fused", "pcm", "pcm_joint")
 
 
 def _labels(methods: Sequence[str], group_size: int) -> dict[str, str]:
-    from sfm_laserscale.synthetic.simulate import method_label
-
     return {m: method_label(m, group_size) for m in methods}
 
 
 def _rows(result: SimulationResult, a: dict[str, NDArray[Any]], method: str, **match: Any
           ) -> NDArray[np.bool_]:
     """Rows of one method whose setting key matches every given field."""
-    from sfm_laserscale.synthetic.simulate import method_rows
-
     t = result.collected.table
     kids = [i for i, k in enumerate(t.keys) if all(getattr(k, f) == v for f, v in match.items())]
     return np.asarray(method_rows(t, a, method) & np.isin(a["key"], kids))
@@ -203,8 +201,6 @@ def _error_figures(result: SimulationResult, a: dict[str, NDArray[Any]]) -> dict
 def _scatter_figures(result: SimulationResult, a: dict[str, NDArray[Any]]) -> dict[str, bytes]:
     """PCM and PCM-joint error against the depth difference; with antithetic draws, the
     means of the twins (the systematic error of each view, noise cancelled to first order)."""
-    from sfm_laserscale.synthetic.simulate import antithetic_pairs
-
     opts = result.options
     what = "antithetic pair means" if opts.antithetic else "single draws"
     out = {}
@@ -228,8 +224,6 @@ def _scatter_figures(result: SimulationResult, a: dict[str, NDArray[Any]]) -> di
 
 
 def _heatmap_figures(result: SimulationResult) -> dict[str, bytes]:
-    from sfm_laserscale.synthetic.simulate import grid_angles, grid_maps
-
     opts = result.options
     labels = _labels(HEATMAP_METHODS, opts.group_size)
     return {f"heatmap_{c}_{d:g}m.png": heatmaps_png(maps, grid_angles(opts), labels,

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import base64
 import json
-import logging
 import struct
 from pathlib import Path
 from typing import Any
@@ -15,8 +14,6 @@ import numpy as np
 
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.meshes.common import _AtomicOutput, _copy_side_file
-
-logger = logging.getLogger(__name__)
 
 _GLB_MAGIC = b"glTF"
 _GLB_JSON, _GLB_BIN = 0x4E4F534A, 0x004E4942

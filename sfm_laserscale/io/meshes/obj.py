@@ -3,7 +3,6 @@ with only the x y z of the ``v`` lines rescaled; MTL files and their textures ar
 
 from __future__ import annotations
 
-import logging
 import re
 import warnings
 from pathlib import Path
@@ -24,8 +23,6 @@ from sfm_laserscale.io.meshes.common import (
     _raise_bad_xyz_line,
     _xyz_pattern,
 )
-
-logger = logging.getLogger(__name__)
 
 # ----------------------------------------------------------------------------- OBJ read
 

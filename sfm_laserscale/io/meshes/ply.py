@@ -3,7 +3,6 @@ the vertex positions rescaled, every other byte kept."""
 
 from __future__ import annotations
 
-import logging
 import mmap
 import re
 import struct
@@ -28,8 +27,6 @@ from sfm_laserscale.io.meshes.common import (
     _read_exact,
     _write_all,
 )
-
-logger = logging.getLogger(__name__)
 
 #: PLY scalar type name -> numpy type code (byte order added per file).
 _PLY_TYPES: dict[str, str] = {
