@@ -102,12 +102,6 @@ class FusedScale:
     images_used: tuple[str, ...] = ()
     reason: str | None = None  # why there is no value
 
-    def summary(self) -> dict[str, object]:
-        """The report.json ``scale`` block (DESIGN.md §6)."""
-        return {"value": self.value, "std": self.std, "ci95": list(self.ci95),
-                "inverse": self.inverse, "method": self.method,
-                "n_estimates": self.n_estimates, "n_rejected": self.n_rejected}
-
 
 def _gls(values: F64, cov: F64) -> tuple[F64, float]:
     """GLS weights (n,) (summing to 1) and the χ² of values about the weighted mean."""

@@ -22,6 +22,7 @@ from typing import Any
 from tqdm import tqdm
 
 from sfm_laserscale import __version__
+from sfm_laserscale.io.outputs import pid_alive
 
 logger = logging.getLogger(__name__)
 _CHUNK = 1 << 22
@@ -171,22 +172,12 @@ _GLOG_DIR_PREFIX = "sfm_laserscale_glog_"
 _GLOG_TIME = re.compile(r"[IWEF](\d{8} \d\d:\d\d:\d\d\.\d{6}) ")
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process
-        return True
-    return True
-
-
 def _remove_stale_glog_dirs(parent: Path) -> None:
     """Remove the temporary glog folders of runs whose process is gone (killed runs cannot
     clean up after themselves); the folder name holds the process id."""
     for d in parent.glob(_GLOG_DIR_PREFIX + "*_*"):
         pid = d.name[len(_GLOG_DIR_PREFIX):].split("_", 1)[0]
-        if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
+        if pid.isdigit() and int(pid) != os.getpid() and not pid_alive(int(pid)):
             shutil.rmtree(d, ignore_errors=True)
 
 

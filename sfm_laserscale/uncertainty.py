@@ -127,7 +127,7 @@ def rig_parameter_names(rig: Rig) -> tuple[str, ...]:
                  for s in RIG_PARAM_SUFFIXES)
 
 
-def _tilt_basis(v: F64) -> F64:
+def tilt_basis(v: F64) -> F64:
     """(2, 3) unit vectors perpendicular to the unit beam direction v (deterministic)."""
     x, y, z = (float(c) for c in v)
     n = float(np.hypot(z, x))  # v·c_z > 0.01 (rig validation), so n > 0
@@ -205,7 +205,7 @@ def _beams(rig: Rig, options: EstimationOptions) -> tuple[_Beams, F64]:
     beams = _Beams(tuple(x.name for x in cal),
                    np.array([x.origin for x in cal], dtype=np.float64).reshape(-1, 3),
                    np.array([x.direction for x in cal], dtype=np.float64).reshape(-1, 3),
-                   np.array([_tilt_basis(np.asarray(x.direction)) for x in cal]).reshape(-1, 2, 3))
+                   np.array([tilt_basis(np.asarray(x.direction)) for x in cal]).reshape(-1, 2, 3))
     return beams, sigma
 
 

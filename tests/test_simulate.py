@@ -32,7 +32,7 @@ from sfm_laserscale.synthetic.simulate.configs import (
     is_parallel_axis_rig,
 )
 from sfm_laserscale.synthetic.simulate.runner import simulate
-from sfm_laserscale.synthetic.simulate.trial import TrialContext, run_trial, true_spots
+from sfm_laserscale.synthetic.simulate.trial import TrialContext, run_trial, view_true_spots
 from sfm_laserscale.synthetic.simulate.views import ViewJob, grid_angles, view_pose
 
 TRIALS = 200  # per cell of the Monte-Carlo checks
@@ -115,15 +115,13 @@ def test_true_spots_on_a_plane_are_the_exact_beam_hits() -> None:
     assert scene.areas["smooth"].relief_m == pytest.approx(0.0, abs=1e-12)
     rig, cam = config_rig("C"), default_camera()
     pose_m = view_pose(np.zeros(3), np.array([0.0, 0.0, 1.0]), 2.5, 20.0, -10.0)
-    k = 0.5
-    pose = Pose(pose_m.R, pose_m.t / k)  # model units
-    spots = true_spots(caster, cam, pose, rig, k)
+    spots = view_true_spots(caster, cam, pose_m, rig, 0.5)  # caster in model units of 0.5 m
     for s, las in zip(spots, rig.lasers, strict=True):
         o = pose_m.inverse().transform(las.origin[None])[0]
         v = pose_m.R.T @ las.direction
         hit_m = o - o[2] / v[2] * v  # the beam meets z = 0
-        assert s.reason is None
-        assert np.allclose(s.hit * k, hit_m, atol=1e-9)
+        assert s.visible and s.xy_px is not None and s.hit_world is not None
+        assert np.allclose(s.hit_world, hit_m, atol=1e-9)
         assert np.allclose(s.xy_px, cam.project(pose_m.transform(hit_m[None]))[0], atol=1e-6)
 
 

@@ -41,7 +41,6 @@ from collections.abc import Sequence
 from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -52,6 +51,7 @@ from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.colmap import read_colmap_model
 from sfm_laserscale.io.images import IMAGE_SUFFIXES
 from sfm_laserscale.model import INVALID_POINT3D_ID, SparseModel
+from sfm_laserscale.registration.mapping import mapping_options
 
 logger = logging.getLogger("sfm_laserscale.plugins.colmap")
 
@@ -294,27 +294,14 @@ def _pycolmap_sfm(images: Path, names: list[str], pairs: Path | None, work: Path
             db, matching_options=matching, device=pycolmap.Device.cpu,
             pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pairs))
     sparse.mkdir(exist_ok=True)
-    recs = pycolmap.incremental_mapping(db, images, sparse, options=_mapping_options(o))
+    mapping = mapping_options(o.seed, fixed_intrinsics=o.camera_params is not None,
+                              min_model_size=3)
+    recs = pycolmap.incremental_mapping(db, images, sparse, options=mapping)
     for idx, rec in recs.items():  # written by COLMAP already; make sure every model is
         if not (sparse / str(idx) / "images.bin").is_file():
             (sparse / str(idx)).mkdir(exist_ok=True)
             rec.write(sparse / str(idx))
     return sparse
-
-
-def _mapping_options(o: SfmOptions) -> Any:
-    import pycolmap
-
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.min_model_size = 3
-    opts.random_seed = int(o.seed)
-    if o.camera_params is not None:
-        opts.ba_refine_focal_length = False
-        opts.ba_refine_principal_point = False
-        opts.ba_refine_extra_params = False
-        opts.mapper.abs_pose_refine_focal_length = False
-        opts.mapper.abs_pose_refine_extra_params = False
-    return opts
 
 
 # --------------------------------------------------------------------------- SfM: both

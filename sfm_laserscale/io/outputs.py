@@ -49,7 +49,7 @@ def check_output_dir(out: Path, overwrite: bool) -> None:
     clean_stale_staging(out)
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
     """True unless no process has this id (another user's process counts as alive)."""
     if pid <= 0:
         return True  # not a pid we wrote: leave the folder alone
@@ -74,7 +74,7 @@ def clean_stale_staging(out: Path) -> list[Path]:
         return removed
     for entry in entries:
         m = pattern.match(entry.name)
-        if m is None or not entry.is_dir() or entry.is_symlink() or _pid_alive(int(m[2])):
+        if m is None or not entry.is_dir() or entry.is_symlink() or pid_alive(int(m[2])):
             continue
         if m[1] == "old" and not out.exists():
             logger.warning("restoring %s, left aside by a killed run", out)

@@ -72,6 +72,7 @@ from sfm_laserscale.uncertainty import (
     estimate_image,
     perturb_poses,
     pose_sqrt,
+    tilt_basis,
 )
 
 logger = logging.getLogger(__name__)
@@ -334,14 +335,6 @@ def _direction_sigma_deg(sol: _Solution) -> float:
     return float(np.degrees(np.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0))))
 
 
-def _tilt_basis(v: F64) -> F64:
-    """(2, 3) unit vectors perpendicular to the unit beam direction v (uncertainty.py's basis)."""
-    x, y, z = (float(c) for c in v)
-    n = float(np.hypot(z, x))
-    a = (z / n, 0.0, -x / n)  # (0, 1, 0) × v, normalised
-    return np.array([a, (y * a[2], z * a[0] - x * a[2], -y * a[0])], dtype=np.float64)
-
-
 def _implied(x: F64, v: F64, separation: float) -> tuple[float, F64]:
     """One image's scale with the joint direction, d_L / ‖(X2 − X1) ⟂ v‖, and ∂/∂(X1, X2)."""
     d = x[1] - x[0]
@@ -377,7 +370,7 @@ def _rig_gradient(pair: Pair, rig: Rig, x: F64, normal: F64, grads: F64, v: F64,
         so, sd = las.sigma_origin, las.sigma_direction
         if so == 0 and sd == 0:
             continue
-        tilt = _tilt_basis(np.asarray(las.direction, dtype=np.float64))
+        tilt = tilt_basis(np.asarray(las.direction, dtype=np.float64))
         rho = s * x[:, j, 2] / v[2]  # (n,) metres along the beam
         disp = np.zeros((len(x), 4, 3))  # (n, parameter, xyz) metres
         disp[:, 0, 0] = so

@@ -57,6 +57,7 @@ from sfm_laserscale.errors import InputError
 from sfm_laserscale.geometry import qvec_from_rotmat, umeyama_sim3
 from sfm_laserscale.model import Camera, Pose
 from sfm_laserscale.provenance import progress_bar
+from sfm_laserscale.registration.mapping import mapping_options
 from sfm_laserscale.rig import Laser, Pair, Rig, rig_to_toml
 from sfm_laserscale.synthetic.render import (
     RenderOptions,
@@ -447,7 +448,7 @@ def run_sfm(images_dir: Path, image_names: list[str], database_path: Path, spars
     extraction.sift.first_octave = options.sift_first_octave
     matching = pycolmap.FeatureMatchingOptions()
     matching.use_gpu = False
-    mapping = _mapping_options(options.seed)
+    mapping = mapping_options(options.seed, fixed_intrinsics=True)
     # one step each: SIFT extraction, matching, incremental mapping (pycolmap reports no finer
     # progress); shown only on a terminal and without --quiet (provenance.progress_bar)
     steps = progress_bar(options.progress, "SfM (features, matching, mapping)", total=3)
@@ -481,20 +482,6 @@ def run_sfm(images_dir: Path, image_names: list[str], database_path: Path, spars
     rec.write(sparse_dir)
     shutil.rmtree(tmp, ignore_errors=True)
     return rec, stats, timings
-
-
-def _mapping_options(seed: int) -> pycolmap.IncrementalPipelineOptions:
-    """Incremental mapping with the known intrinsics held fixed."""
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.ba_refine_focal_length = False
-    opts.ba_refine_principal_point = False
-    opts.ba_refine_extra_params = False
-    opts.mapper.abs_pose_refine_focal_length = False
-    opts.mapper.abs_pose_refine_extra_params = False
-    opts.random_seed = int(seed)
-    opts.mapper.random_seed = int(seed)
-    opts.triangulation.random_seed = int(seed)
-    return opts
 
 
 def _largest_model(recs: dict[int, pycolmap.Reconstruction],

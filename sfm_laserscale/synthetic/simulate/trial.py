@@ -7,6 +7,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,6 +18,8 @@ from sfm_laserscale.model import Camera, Pose, Spot
 from sfm_laserscale.raycast import MeshRaycaster, cast_spots, pixel_rays
 from sfm_laserscale.registration.pose import estimate_pose
 from sfm_laserscale.rig import Rig
+from sfm_laserscale.synthetic.dataset import TrueSpot, true_spots
+from sfm_laserscale.synthetic.render import SceneRaycaster
 from sfm_laserscale.synthetic.simulate.configs import (
     LaserSetting,
     SimulationOptions,
@@ -33,16 +36,6 @@ SPOT_MARGIN_PX = 8.0
 
 #: Davis & Tusting query points: a 5 × 5 grid over the central half of the image.
 DT_GRID = 5
-
-
-@dataclass(frozen=True)
-class TrueSpot:
-    """Where a beam meets the mesh in one true view (model units) and whether it is seen."""
-
-    laser: str
-    xy_px: F64 | None  # (2,) exact projection, COLMAP convention; None when not visible
-    hit: F64 | None  # (3,) first hit of the beam, model units (None: the beam misses)
-    reason: str | None  # why the spot is not visible
 
 
 @dataclass(frozen=True)
@@ -107,34 +100,29 @@ def _features(ctx: TrialContext, true_model: Pose, job: ViewJob, rng: np.random.
     return np.where(outlier[:, None], anywhere, noisy), xyz
 
 
-def true_spots(caster: MeshRaycaster, camera: Camera, true_model: Pose, rig: Rig, k: float
-               ) -> list[TrueSpot]:
-    """Each beam's first mesh hit (model units), projected if in the image and unoccluded."""
-    world_from_cam = true_model.inverse()
-    origins = world_from_cam.transform(np.array([las.origin for las in rig.lasers]) / k)
-    dirs = np.array([las.direction for las in rig.lasers]) @ true_model.R  # rows: Rᵀ v
-    beams = caster.cast(origins, dirs)
-    centre = true_model.center
-    sight = caster.cast(np.repeat(centre[None], len(dirs), axis=0),
-                        np.where(beams.hit[:, None], beams.xyz - centre, dirs))
-    out = []
-    for i, las in enumerate(rig.lasers):
-        if not beams.hit[i]:
-            out.append(TrueSpot(las.name, None, None, "beam misses the mesh"))
-            continue
-        hit = beams.xyz[i]
-        rng_ = float(np.linalg.norm(hit - centre))
-        xy = camera.project(true_model.transform(hit[None]))[0]
-        inside = (SPOT_MARGIN_PX <= xy[0] <= camera.width - SPOT_MARGIN_PX
-                  and SPOT_MARGIN_PX <= xy[1] <= camera.height - SPOT_MARGIN_PX)
-        seen = bool(sight.hit[i]) and abs(float(sight.distance[i]) - rng_) <= 1e-6 * rng_ + 1e-9
-        reason = None if inside and seen else ("spot outside the image" if not inside
-                                               else "spot hidden by the terrain")
-        out.append(TrueSpot(las.name, xy if reason is None else None, hit, reason))
-    return out
+class _MetricCaster:
+    """The trials' ray caster (model units) seen in metres, as ``dataset.true_spots`` casts:
+    ``first_hit`` of metric rays -> ((N, 3) metric hits, NaN where none; (N,) hit mask)."""
+
+    def __init__(self, caster: MeshRaycaster, k: float) -> None:
+        self.caster, self.k = caster, k
+
+    def first_hit(self, origins: F64, directions: F64) -> tuple[F64, NDArray[np.bool_]]:
+        res = self.caster.cast(np.atleast_2d(np.asarray(origins, dtype=np.float64)) / self.k,
+                               directions)
+        return res.xyz * self.k, res.hit
 
 
-def _depth_differences(rig: Rig, spots: Sequence[TrueSpot], true_model: Pose, k: float
+def view_true_spots(caster: MeshRaycaster, camera: Camera, cam_from_world: Pose, rig: Rig,
+                    k: float) -> list[TrueSpot]:
+    """Each beam's first mesh hit and its projection when in the image and unoccluded: the demo's
+    ``dataset.true_spots`` on the trials' caster (model units, ``k`` metres per unit) from the
+    true view ``cam_from_world`` (metres); hits in metres."""
+    metric = cast(SceneRaycaster, _MetricCaster(caster, k))  # true_spots calls first_hit only
+    return true_spots(metric, camera, cam_from_world, rig, SPOT_MARGIN_PX)
+
+
+def _depth_differences(rig: Rig, spots: Sequence[TrueSpot], true_model: Pose
                        ) -> dict[str, float]:
     """Per pair with both beams hitting: (X_2 − X_1)·v of the true hits, metres."""
     by = {s.laser: s for s in spots}
@@ -142,8 +130,8 @@ def _depth_differences(rig: Rig, spots: Sequence[TrueSpot], true_model: Pose, k:
     for pair in rig.pairs:
         a, b = by[pair.lasers[0]], by[pair.lasers[1]]
         v = rig.laser(pair.lasers[0]).direction
-        if a.hit is not None and b.hit is not None and v is not None:
-            out["+".join(pair.lasers)] = float(((b.hit - a.hit) @ (true_model.R.T @ v)) * k)
+        if a.hit_world is not None and b.hit_world is not None and v is not None:
+            out["+".join(pair.lasers)] = float((b.hit_world - a.hit_world) @ (true_model.R.T @ v))
     return out
 
 
@@ -189,13 +177,13 @@ def evaluate_setting(ctx: TrialContext, index: int, truth: Sequence[TrueSpot], j
     spots = [Spot(t.laser, float(t.xy_px[0] + sigma * z[j, 0]), float(t.xy_px[1] + sigma * z[j, 1]),
                   1.0, sigma, "synthetic")
              for j, t in enumerate(truth) if t.xy_px is not None]
-    reasons = {t.laser: t.reason for t in truth if t.reason is not None}
+    reasons = {t.laser: t.reason for t in truth if not t.visible}
     cast = cast_spots(spots, ctx.camera, pose, ctx.caster, ctx.options.spot_cast)
     edges = tuple(h.laser for h in cast.edge_hits)
     reasons.update({las: why for las, why in cast.reasons.items() if las not in edges})
     k = ctx.options.true_scale
     depth = _depth_differences(setting.rig, truth,
-                               Pose(job.cam_from_world.R, job.cam_from_world.t / k), k)
+                               Pose(job.cam_from_world.R, job.cam_from_world.t / k))
     order = {s.laser: i for i, s in enumerate(spots)}
     every = tuple(sorted((*cast.hits, *cast.edge_hits), key=lambda h: order[h.laser]))
     if not every:
@@ -238,7 +226,8 @@ def run_trial(ctx: TrialContext, job: ViewJob) -> TrialRecord:
     outcomes = []
     for i, s in enumerate(ctx.settings):
         if s.config not in truths:
-            truths[s.config] = true_spots(ctx.caster, ctx.camera, true_model, s.rig, k)
+            truths[s.config] = view_true_spots(ctx.caster, ctx.camera, job.cam_from_world, s.rig,
+                                               k)
         outcomes.append(evaluate_setting(ctx, i, truths[s.config], job, pose, res.covariance,
                                          z[i]))
     rot, centre = _pose_errors(true_model, pose, k)
