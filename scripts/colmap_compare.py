@@ -11,7 +11,7 @@ angle (degrees) and the camera-centre distance as a percentage of the model exte
 COLMAP 3.8 cannot add images to a pycolmap 4.x database (its ``images`` table lacks the prior
 columns), so the demo's database is first copied into a database made by
 ``colmap database_creator`` (cameras, images, keypoints, descriptors, matches, two-view
-geometries). Inputs are never touched: everything COLMAP may write is a copy (DESIGN §9).
+geometries). Inputs are never touched: everything COLMAP may write is a copy (docs/DESIGN.md §6).
 
     .venv/bin/python scripts/colmap_compare.py --demo DIR --work DIR
 """
@@ -246,7 +246,7 @@ def compare_fixture(fixture: Path, work: Path, held_out: str = "03.jpg") -> dict
     if work.exists():
         shutil.rmtree(work)
     work.mkdir(parents=True)
-    for f in fixture.iterdir():  # COLMAP may write the database: copies only (DESIGN §9)
+    for f in fixture.iterdir():  # COLMAP may write the database: copies only (docs/DESIGN.md §6)
         if f.name.startswith("colmap.db"):
             shutil.copyfile(f, work / f.name)
     model = read_colmap_model(fixture / "reconstruction")

@@ -31,7 +31,7 @@ from sfm_laserscale.uncertainty import EstimationOptions, ImageEstimates
 
 @dataclass(frozen=True)
 class ScaleInputs:
-    """Paths given to ``scale`` (DESIGN.md §5)."""
+    """Paths given to ``scale`` (docs/OUTPUTS.md)."""
 
     model: Path
     mesh: Path

@@ -1,4 +1,5 @@
-"""The CLI contract (DESIGN.md §5) through click's CliRunner: exit codes 0/1/2 and the outputs."""
+"""The CLI contract (docs/OUTPUTS.md) through click's CliRunner: exit codes 0/1/2 and the
+outputs."""
 
 from __future__ import annotations
 

@@ -107,7 +107,7 @@ def test_pcm_invariant_under_world_similarity(seed: int, s_true: float, q: tuple
         assert after.scale == pytest.approx(before.scale / k, rel=1e-7)
         if exact:  # hits at the same depth along the beams: the midpoint rule is exact
             assert before.scale == pytest.approx(s_true, rel=1e-9)
-        else:  # otherwise it overestimates d̂, i.e. underestimates the scale (DESIGN §3)
+        else:  # otherwise it overestimates d̂, i.e. underestimates the scale (docs/DESIGN.md §3)
             assert before.scale <= s_true * (1 + 1e-9)
 
 

@@ -30,7 +30,8 @@ REPO = Path(__file__).resolve().parents[1]
 FIXTURES = REPO.parent / "shared" / "fixtures"
 RUN_TIMEOUT_S = 120.0
 
-#: DESIGN.md §6 outputs of ``scale`` on the synthetic data set (COLMAP binary model, PLY mesh).
+#: The outputs of ``scale`` (docs/OUTPUTS.md) on the synthetic data set (COLMAP binary model,
+#: PLY mesh).
 SCALE_OUTPUTS = ("report.json", "report.html", "estimates.csv", "spots.csv", "transform.sim3",
                  "transform_4x4.txt", "run.log", "scaled/model/cameras.bin",
                  "scaled/model/images.bin", "scaled/model/points3D.bin", "scaled/mesh.ply")
@@ -49,7 +50,7 @@ def tree_digest(*roots: Path) -> dict[str, tuple[str, int]]:
 
 
 def assert_complete_scale_output(out: Path, image_names: list[str], mesh_vertices: int) -> None:
-    """Every DESIGN §6 output is there and readable: a complete, uncorrupted ``--out``."""
+    """Every output (docs/OUTPUTS.md) is there and readable: a complete, uncorrupted ``--out``."""
     missing = [rel for rel in SCALE_OUTPUTS if not (out / rel).is_file()]
     assert not missing, f"{out} lacks {missing}"
     report = json.loads((out / "report.json").read_text())

@@ -188,7 +188,7 @@ def test_reported_sigma_matches_the_monte_carlo_spread(noise_cells, config: str)
         assert v["n"] >= TRIALS * 0.95, name
         assert RATIO[0] <= v["ratio"] <= RATIO[1], (name, v)
         assert COVER[0] <= v["coverage95"] <= COVER[1], (name, v)
-    # pooled over the lasers (n = 4 × TRIALS): the DESIGN §7 targets, with sampling margins
+    # pooled over the lasers (n = 4 × TRIALS): docs/SIMULATE.md's targets, with sampling margins
     pooled = m["fcm"]
     assert 0.88 <= pooled["ratio"] <= 1.14 and 0.92 <= pooled["coverage95"] <= 0.98, pooled
     # FCM unbiased: mean normalised error within 0.1 + 3 standard errors of 0

@@ -223,7 +223,7 @@ def test_small_demo_truth_spots_are_consistent(small_demo: DemoDataset) -> None:
             assert img[int(s["y"]), int(s["x"]), 2] >= 250  # saturated red channel (BGR)
             las = ds.rig.laser(s["laser"])
             assert las.origin is not None and las.direction is not None
-            o_hat = x_cam - (x_cam[2] / las.direction[2]) * las.direction  # FCM, DESIGN §3
+            o_hat = x_cam - (x_cam[2] / las.direction[2]) * las.direction  # FCM, docs/DESIGN.md §3
             np.testing.assert_allclose(o_hat * ds.true_scale, las.origin, atol=1e-9)
     rows = ds.spots_path.read_text().strip().splitlines()
     assert rows[0] == "image,laser,x,y" and len(rows) == 1 + 3 * 4

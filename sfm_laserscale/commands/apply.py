@@ -1,6 +1,6 @@
 """``apply``: rescale a sparse model and/or a mesh by a known scale (metres per model unit).
 
-Writes the same files as ``scale`` does for its rescaled outputs (DESIGN.md §6)::
+Writes the same files as ``scale`` does for its rescaled outputs (docs/OUTPUTS.md)::
 
     DIR/scaled/model/          the model, same format as the input (COLMAP binary or text:
                                the whole folder; OpenMVG: sfm_data.json)

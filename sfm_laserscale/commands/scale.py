@@ -212,7 +212,7 @@ def crop_mesh(runs: Sequence[ImageRun], loaded: LoadedInputs,
 def mesh_check_points(runs: Sequence[ImageRun], options: ScaleOptions,
                       extent: float) -> np.ndarray:
     """(N, 3) the registered laser images' inlier model points near their spots' rays: where
-    the scale is read off the mesh, so where mesh and model must agree (DESIGN §6 checks)."""
+    the scale is read off the mesh, so where mesh and model must agree (docs/DESIGN.md §4)."""
     pts, dist = [], []
     for r, camera, pose in _views(runs):
         if not r.spots or r.registration is None:
@@ -379,7 +379,7 @@ def run(
     options: ScaleOptions = ScaleOptions(),  # noqa: B008
     overwrite: bool = False,
 ) -> ScaleResult:
-    """The whole ``scale`` command: estimate, fuse and write every output of DESIGN.md §6."""
+    """The whole ``scale`` command: estimate, fuse and write every output (docs/OUTPUTS.md)."""
     check_output_dir(out_dir, overwrite)
     timer = Timer()
     with captured_log() as log_lines, captured_colmap_log() as colmap_log:

@@ -1,6 +1,6 @@
 """Keypoints and SIFT descriptors from a COLMAP database, read without ever modifying it.
 
-``pycolmap.Database.open`` upgrades an old schema in place (DESIGN §9), and even SQLite's
+``pycolmap.Database.open`` upgrades an old schema in place (docs/DESIGN.md §6), and even SQLite's
 read-only mode writes the ``-shm`` index of a WAL database beside the file. So:
 
 - no pending journal (``-wal`` / ``-journal`` absent or empty; the usual case, and the

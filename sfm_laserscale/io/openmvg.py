@@ -1,60 +1,10 @@
-"""OpenMVG input and output: ``sfm_data.json``, SIFT regions, rescaled ``sfm_data.json``.
+"""OpenMVG input and output: ``sfm_data.json`` read as a :class:`SparseModel` in COLMAP's
+conventions (``read_openmvg_sfm_data``), SIFT regions read as COLMAP-ordered descriptors
+(``openmvg_model_features``), a rescaled ``sfm_data.json`` (``write_scaled_openmvg_sfm_data``:
+only the number tokens of the pose centres and 3D points change, every other byte is copied).
 
-``sfm_data.json`` is OpenMVG's cereal JSON (versions 0.1–0.3 share the layout):
-
-- ``views``: ``[{key, value: {polymorphic_id[, polymorphic_name], ptr_wrapper: {id, data:
-  {local_path, filename, width, height, id_view, id_intrinsic, id_pose}}}}]``;
-- ``intrinsics``: same wrapper, ``polymorphic_name`` = the camera model (given only with
-  the first object of each type; later ones repeat its ``polymorphic_id`` without the
-  0x80000000 bit), ``data``: width, height, focal_length, principal_point and the
-  distortion list (newer cereal nests the base-class fields under ``value0``);
-- ``extrinsics``: ``[{key: pose id, value: {rotation: 3×3 rows, center: [3]}}]`` with
-  ``rotation`` = R of cam_from_world and ``center`` = C: X_cam = R (X − C), t = −R C;
-- ``structure`` (and ``control_points``): ``[{key: landmark id, value: {X: [3],
-  observations: [{key: view id, value: {id_feat, x: [2]}}]}}]``.
-
-Conversion to our conventions (DESIGN §2, §9):
-
-- pixels: OpenMVG puts the centre of the top-left pixel at (0, 0), COLMAP at (0.5, 0.5):
-  principal points, observations and ``.feat`` keypoints get +0.5 px here (measured on the
-  fixture: pycolmap SIFT keypoints − OpenMVG keypoints of the same image, median
-  (+0.503, +0.499) px);
-- cameras (all exact, tests/test_io_openmvg.py compares projections with OpenMVG's
-  formulas): pinhole → PINHOLE (f, f); pinhole_radial_k1 → SIMPLE_RADIAL;
-  pinhole_radial_k3 → FULL_OPENCV (k1, k2, p = 0, k3, k4..k6 = 0);
-  pinhole_brown_t2 (k1, k2, k3, t1, t2) → FULL_OPENCV with p1 = t1, p2 = t2 (OpenMVG:
-  x_d += t2 (r² + 2x²) + 2 t1 x y, OpenCV: x_d += 2 p1 x y + p2 (r² + 2x²));
-  fisheye (k1..k4 on θ) → OPENCV_FISHEYE; fisheye1 (Devernay–Faugeras) → FOV;
-  pinhole_2 / pinhole_brown_t2_2 (fx ≠ fy variants) → PINHOLE / FULL_OPENCV;
-- image ids are view ids (views may share an intrinsic or a pose), camera ids are
-  intrinsic ids, 3D point ids are landmark ids. Views without an intrinsic or a pose are
-  not registered and are left out.
-
-Regions (``<image stem>.feat`` text ``x y scale orientation``, ``<image stem>.desc`` a
-uint64 count then N × 128 uint8) are read only for OpenMVG's VLFeat SIFT
-(``SIFT_Image_describer`` in ``image_describer.json``). VLFeat orders the 8 orientation
-bins of each of the 16 spatial cells the other way round from COLMAP (UBC/Lowe order):
-COLMAP bin m = VLFeat bin (8 − m) mod 8, spatial cells unchanged (COLMAP applies the same
-mapping to its own VLFeat output). Measured on ``MaupertuisTest_04``: mean distance from an
-OpenMVG descriptor to the nearest pycolmap descriptor at the same keypoint (±1 px) 363
-(uint8 units) as stored, 23 after reordering. OpenMVG's RootSIFT (``root_sift: true``,
-its default) stores floor(512·√(d/‖d‖₁)), COLMAP's L1_ROOT round(512·√(d/‖d‖₁)): the
-same numbers but 0.5 lower on average, which costs ~1 unit of the ~14 between matching
-descriptors, so they are kept as they are; plain SIFT (``root_sift: false``) is converted
-(and RootSIFT when an L2 query is wanted), de-quantised at the midpoint x + 0.5 first.
-
-Model layout: when the regions are found (``matches/`` beside ``sfm_data.json``, in its
-parent folder — OpenMVG's own pipeline layout — or given), ``Image.xy_px`` holds every
-keypoint of the view and keypoint i is observation i (the COLMAP database convention), so
-``openmvg_model_features`` returns ``ImageFeatures``. Without regions, ``Image.xy_px``
-holds only the view's observations, sorted by feature id, and ``openmvg_model_features``
-returns ``ObservationFeatures`` for them.
-
-Rescaled output: only the number tokens of ``extrinsics[*].value.center`` and of
-``structure[*].value.X`` / ``control_points[*].value.X`` are replaced (by the shortest text
-of the scaled double); every other byte of the file is copied, so key order, formatting
-and all other numbers (rotations, intrinsics, observations, view priors) stay identical.
-Pose-centre priors of ``view_priors`` views are deliberately left in their own frame.
+The file layout, the conversions (pixel origin +0.5 px, camera models, descriptor bin order,
+RootSIFT) and the measurements behind them are in docs/OPENMVG.md.
 """
 
 from __future__ import annotations
@@ -86,7 +36,7 @@ logger = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
-#: OpenMVG pixel coordinates + this = COLMAP pixel coordinates (DESIGN §9).
+#: OpenMVG pixel coordinates + this = COLMAP pixel coordinates (docs/OPENMVG.md).
 OPENMVG_TO_COLMAP_PX = 0.5
 _UNDEFINED_INDEX = 2**32 - 1  # OpenMVG's UndefinedIndexT
 _CEREAL_NEW = 0x80000000  # cereal: first occurrence of a polymorphic type / shared pointer

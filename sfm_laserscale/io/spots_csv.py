@@ -1,4 +1,4 @@
-"""Laser spots CSV (``--spots`` input and ``spots.csv`` output), DESIGN.md §5–6.
+"""Laser spots CSV (``--spots`` input and ``spots.csv`` output), docs/OUTPUTS.md.
 
 Columns: ``image,laser,x,y`` required; ``score``, ``sigma_px`` and ``source`` optional
 (header case-insensitive, surrounding whitespace ignored; any other column is an error).

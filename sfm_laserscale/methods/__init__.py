@@ -1,4 +1,5 @@
-"""Scale methods (DESIGN.md §3): pure numpy, camera frame, hits in model units, rig in metres."""
+"""Scale methods (docs/DESIGN.md §3): pure numpy, camera frame, hits in model units, rig in
+metres."""
 
 from sfm_laserscale.methods.baselines import (
     davis_tusting_scale,

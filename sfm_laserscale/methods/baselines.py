@@ -1,4 +1,4 @@
-"""Baselines for comparison only (DESIGN.md §3): Direct 3D and Davis & Tusting image scaling.
+"""Baselines for comparison only (docs/DESIGN.md §3): Direct 3D and Davis & Tusting image scaling.
 
 Both are wrong on general scenes and are kept to show how much FCM/PCM improve on them:
 - Direct 3D is exact only when parallel beams hit the surface perpendicularly (equal depths).

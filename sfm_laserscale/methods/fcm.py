@@ -1,4 +1,5 @@
-"""FCM — fully calibrated method (DESIGN.md §3): scale from one laser of known origin and direction.
+"""FCM — fully calibrated method (docs/DESIGN.md §3): scale from one laser of known origin and
+direction.
 
 Camera frame (x right, y down, z forward, optical axis c_z = (0, 0, 1)); the hit is in model
 units, the laser origin (on the laser plane z = 0) in metres. With X the hit:

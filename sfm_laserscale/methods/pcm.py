@@ -1,4 +1,4 @@
-"""PCM — partially calibrated method (DESIGN.md §3).
+"""PCM — partially calibrated method (docs/DESIGN.md §3).
 
 Camera frame, hits in model units, separations in metres. The camera centre is the origin of
 the camera frame, so the paper's v_CM (camera centre -> midpoint X_M of the two hits) is X_M.

@@ -1,55 +1,16 @@
 """PCM-joint — parallel-pair scale with the beam direction estimated jointly over the images.
 
-The paper's PCM (``pcm.py``, DESIGN.md §3) approximates the unknown beam direction in each image
-by the direction camera centre -> midpoint of the two hits, which overestimates the beams'
-separation whenever the hits differ in depth (the paper: up to 1.5 % on rough terrain at 40°
-views). A rigid rig keeps the
-beams fixed in the CAMERA frame, and every registered image lives in the same model, i.e. the
-same model scale: in camera coordinates and model units the two beams are the same two lines in
-every image. With three or more images we fit those lines and take their separation.
-
-Formulation (camera frame, model units; beams point forward, v·c_z > 0). Write the common beam
-direction as w = v / v_z = (w_x, w_y, 1) and each beam k by its point o_k on the laser plane
-z = 0 (o_k = O_k / s: the metric origin divided by the unknown scale, the same in all images).
-A hit X of beam k lies on it iff its projection along v onto z = 0 is o_k:
-
-    r_k(X) = (X_x, X_y) − X_z (w_x, w_y) − o_k = 0        (2 equations per hit)
-
-The hits of every image, projected along the beam onto the laser plane, must land on the same
-two points; the condition is LINEAR in the six unknowns θ = (w_x, w_y, o_1, o_2). The residual
-is an oblique projection of the hit's offset perpendicular to the beam, so weighting it by its
-own covariance makes the fit the Gauss–Helmert (first-order maximum-likelihood) estimate of two
-parallel lines from noisy 3D points: per image, r = (r_1, r_2) has covariance B C Bᵀ, with C
-(6×6) the covariance of the image's two camera-frame hits and B = ∂r/∂X = blockdiag([I₂ | −w],
-[I₂ | −w]). C comes from the spot σ (pixels) and the pose covariance through the mesh's local
-tangent plane at each hit, as in ``uncertainty.py`` (central differences along the square-root
-directions of the inputs); it includes the pose error shared by the two hits. The weights depend
-on w only through B, so the fit is iteratively reweighted linear least squares (it converges in
-a few iterations).
-
-    s = d_L / ‖(o_2 − o_1) ⟂ v‖                 (d_L: the pair's separation in metres)
-
-No midpoint approximation and no "camera equidistant from both beams" assumption are involved.
-The direction is determined by hits at different depths along the beams (different camera
-distances and terrain relief); hits all at one depth leave it undetermined (reported, and the
-midpoint approximation is used). Fewer than ``min_images`` (3) usable images of a pair: the
-pair is not fitted; no pair fitted: the paper's midpoint PCM (fused as usual) is returned under
+The paper's PCM (``pcm.py``) approximates the unknown beam direction in each image by the
+direction camera centre -> midpoint of the two hits, which overestimates the beams' separation
+whenever the hits differ in depth. A rigid rig keeps the beams fixed in the camera frame and every
+registered image shares the model's scale, so with three or more images ``estimate_pcm_joint``
+fits the two beams as two parallel lines (camera frame, model units) and takes their separation;
+with fewer, or when the hits leave the direction undetermined, the midpoint PCM is returned under
 this method's name with a note saying so.
 
-Uncertainty (first order). δθ = −H⁻¹ Σᵢ Aᵢᵀ Wᵢ Bᵢ δXᵢ (H = Σ Aᵀ W A, A = ∂r/∂θ), so the scale's
-gradient with respect to every image's hits is explicit and σ² = Σᵢ gᵢ Cᵢ gᵢᵀ (images are
-independent; equal to ∇sᵀ H⁻¹ ∇s when the weights are the true covariances). Several pairs are
-combined by GLS with their covariance (shared spots and poses). With calibrated pair lasers
-carrying ``sigma_origin`` / ``sigma_direction``, the beams' calibration error moves every
-image's hits coherently on the tangent planes; its effect on s is a systematic term common to
-all images (added after the random part, never averaged down). When χ²/dof > 1 the random σ is
-inflated by the Birge ratio and the interval uses Student's t (as ``fusion.py`` does).
-
-Robustness: an image whose leave-one-out χ² (4 dof: its residuals against the fit of the other
-images, with the prediction's covariance) exceeds the ``outlier_p_value`` threshold is rejected
-with its reason (wrong spot, swapped lasers), worst first, iterated. The threshold is multiplied
-by the χ²/dof of the other images' own fit when that exceeds 1 (every image scattering more
-than its σ says is not an outlier), a scale the outlier itself cannot inflate.
+The formulation (a linear fit iteratively reweighted with each image's hit covariance, i.e. the
+Gauss–Helmert estimate), its first-order uncertainty (random part and the rig's systematic part)
+and the leave-one-out outlier rule are in docs/DESIGN.md §3.
 """
 
 from __future__ import annotations

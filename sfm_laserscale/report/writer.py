@@ -1,4 +1,4 @@
-"""Writers of the ``scale`` outputs (DESIGN.md §6): report.json/html, CSVs, transforms,
+"""Writers of the ``scale`` outputs (docs/OUTPUTS.md): report.json/html, CSVs, transforms,
 the rescaled model and mesh, overlays. Pure dict building is kept apart from file writing.
 """
 
@@ -45,7 +45,7 @@ def _num(x: Any) -> float | None:
 
 
 def fused_to_dict(f: FusedScale) -> dict[str, Any]:
-    """The report's scale block of one method (DESIGN.md §6 keys first, then the details)."""
+    """The report's scale block of one method (docs/OUTPUTS.md: its keys)."""
     used = set(f.images_used)
     d: dict[str, Any] = {
         "value": _num(f.value),
@@ -183,8 +183,8 @@ def build_report(
     timer: Timer,
     pcm_joint: PcmJointResult | None = None,
 ) -> dict[str, Any]:
-    """report.json content (DESIGN.md §6 keys, plus inputs, options and the report's checks);
-    ``pcm_joint``: the joint fit behind ``fused["pcm_joint"]`` (its per-pair details)."""
+    """report.json content (docs/OUTPUTS.md: every key, with the inputs, options and the report's
+    checks); ``pcm_joint``: the joint fit behind ``fused["pcm_joint"]`` (its per-pair details)."""
     report: dict[str, Any] = {
         "version": __version__,
         "scale": fused_to_dict(headline),
@@ -346,7 +346,8 @@ def write_outputs(
     options: ScaleOptions,
     timer: Timer,
 ) -> None:
-    """Every file of DESIGN.md §6 into ``out`` (report.json last, with final timings)."""
+    """Every output file of ``scale`` (docs/OUTPUTS.md) into ``out`` (report.json last, with
+    final timings)."""
     t0 = time.perf_counter()
     write_estimates_csv(out / "estimates.csv", runs)
     write_spots_csv(out / "spots.csv", {r.name: list(r.spots) for r in runs})
