@@ -57,7 +57,7 @@ WRAPPED = (
     ("fuse", "sfm_laserscale.commands.scale", "fuse_all"),
     ("mesh_check", "sfm_laserscale.commands.scale", "mesh_model_agreement"),
     ("provenance", "sfm_laserscale.commands.scale", "provenance"),
-    ("report_build", "sfm_laserscale.report.writer", "build_report"),
+    ("report_build", "sfm_laserscale.commands.scale", "build_report"),
     ("model_write", "sfm_laserscale.report.writer", "write_scaled_colmap_model"),
     ("mesh_write", "sfm_laserscale.report.writer", "write_scaled_mesh"),
     ("overlays", "sfm_laserscale.report.writer", "_write_overlays"),
