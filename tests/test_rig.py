@@ -88,3 +88,62 @@ def test_bad_rigs_raise_input_error_naming_the_file(
 def test_missing_rig_file(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="not found"):
         load_rig(tmp_path / "nope.toml")
+
+
+@pytest.mark.parametrize(
+    ("value", "channel", "label"),
+    [
+        ('"green"', "green", "green"),
+        ('"Blue"', "blue", "blue"),
+        ("532", "green", "532 nm"),
+        ('"532 nm"', "green", "532 nm"),
+        ("450", "blue", "450 nm"),
+        ("638.5", "red", "638.5 nm"),
+        ("[0.1, 1.0, 0.2]", "green", "[0.1, 1, 0.2]"),
+        ("[255, 40, 10]", "red", "[255, 40, 10]"),
+    ],
+)
+def test_laser_colour_as_name_wavelength_or_triplet_round_trips(
+    tmp_path: Path, value: str, channel: str, label: str
+) -> None:
+    """A colour may be a name, a wavelength (nm) or an RGB triplet: the laser's channel is the
+    one it is brightest in, its label what the file said, and the TOML written reads back the
+    same."""
+    rig = load_rig(_write(tmp_path, GOOD.replace('color = "red"', f"color = {value}")))
+    las = rig.laser("L1")
+    assert (las.color, las.color_label) == (channel, label)
+    rgb = las.expected_rgb
+    assert rgb is not None and max(rgb) == pytest.approx(1.0)
+    assert ("red", "green", "blue")[int(np.argmax(rgb))] == channel
+    again = load_rig(_write(tmp_path, rig_to_toml(rig))).laser("L1")
+    assert (again.color, again.color_label, again.expected_rgb) == (channel, label, rgb)
+
+
+def test_wavelength_response_follows_the_sensor_bands() -> None:
+    from sfm_laserscale.laser_color import rgb_from_wavelength
+
+    g = rgb_from_wavelength(532.0)
+    assert g[1] == 1.0 and 0.0 < g[0] < 0.2 and 0.0 < g[2] < 0.3  # crosstalk, green dominant
+    r = rgb_from_wavelength(650.0)
+    assert r[0] == 1.0 and r[1] < 0.2
+    b = rgb_from_wavelength(450.0)
+    assert b[2] == 1.0 and b[0] < 0.1
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ("300", "380-780 nm"),
+        ('"900 nm"', "380-780 nm"),
+        ("[1, 2]", "3 numbers"),
+        ("[0, 0, 0]", "not all 0"),
+        ("[-1, 1, 0]", ">= 0"),
+        ('"teal"', "wavelength in nm"),
+        ("true", "wavelength in nm"),
+    ],
+)
+def test_bad_laser_colours_name_the_laser(tmp_path: Path, value: str, message: str) -> None:
+    path = _write(tmp_path, GOOD.replace('color = "red"', f"color = {value}"))
+    with pytest.raises(InputError) as err:
+        load_rig(path)
+    assert message in str(err.value) and "'L1'" in str(err.value)

@@ -2,12 +2,12 @@
 
 A calibrated laser may take a candidate of its colour (any colour for "any": the colour evidence
 then compares with each candidate's channel) within ``band_px`` of its beam segment; its score
-is the candidate's evidence (:mod:`.score`; its colour is measured against the expected colour
-of its channel's lasers) times the beam term ``exp(-½ (d / band)²)``. The assignment is linear
-on ``-log(score)``; a laser whose best candidate scores below ``min_score`` gets none. An
-uncalibrated laser takes the best free candidate of its colour when no other laser shares that
-colour. A laser without a spot is explained by the best candidates in its band, each with its
-score and the test it failed or its weakest evidence.
+is the candidate's evidence (:mod:`.score`), ``depth`` (below) and the agreement of its range
+with the other lasers' spots; the spots are chosen jointly (:mod:`.joint`) and a laser whose
+best candidate scores below ``min_score`` gets none. An uncalibrated laser takes the best free
+candidate of its colour when no other laser shares that colour. A laser without a spot is
+explained by the best candidates in its band, each with its score and the test it failed or its
+weakest evidence.
 """
 
 from __future__ import annotations
@@ -16,10 +16,10 @@ import math
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import linear_sum_assignment
 
-from sfm_laserscale.detection.beams import SearchRegion, distance_to_polyline
+from sfm_laserscale.detection.beams import SearchRegion, distance_to_polyline, range_along_beam
 from sfm_laserscale.detection.candidates import Measure
+from sfm_laserscale.detection.joint import MAX_OPTIONS, choose, laser_options, range_term
 from sfm_laserscale.detection.options import DetectionOptions
 from sfm_laserscale.detection.score import describe_weakest
 from sfm_laserscale.rig import Rig
@@ -27,25 +27,70 @@ from sfm_laserscale.rig import Rig
 F64 = NDArray[np.float64]
 UNCALIBRATED_REASON = "uncalibrated laser: give its spots with --spots"
 _INADMISSIBLE = 1e6
+#: colour term from which a candidate counts as laser light (for the depth order)
+LIT_COLOUR = 0.7
+#: factor of a candidate with laser light farther along its beam
+DEPTH = 0.1
+#: "farther" means beyond this fraction of the candidate's own range
+DEPTH_MARGIN = 0.05
 
 
 def beam_term(dist_px: F64, band_px: float) -> F64:
-    """Score factor for the distance to the beam segment: exp(-½ (d / band)²)."""
-    return np.asarray(np.exp(-0.5 * (dist_px / band_px) ** 2), dtype=np.float64)
+    """Score factor for the distance to the beam segment: exp(-½ (2 d / band)²)."""
+    return np.asarray(np.exp(-0.5 * (2.0 * dist_px / band_px) ** 2), dtype=np.float64)
 
 
-def evidence(m: Measure, beam: float) -> dict[str, float]:
-    """Every evidence term of a candidate at a beam term ``beam``."""
-    return {**m.terms, "colour": m.colour.term, "beam": beam}
+def evidence(m: Measure, beam: float, laser: str | None = None) -> dict[str, float]:
+    """Every evidence term of a candidate at a beam term ``beam`` (and, for a laser, whether
+    laser light lies farther along that laser's beam, ``depth``, and whether its range agrees
+    with the other lasers' spots, ``range``: :mod:`.joint`)."""
+    return {**m.terms, "colour": m.colour.term, "beam": beam,
+            "depth": m.depth.get(laser, 1.0) if laser else 1.0,
+            "range": m.range_fit.get(laser, 1.0) if laser else 1.0}
 
 
-def why_weak(m: Measure, beam: float) -> str:
+def why_weak(m: Measure, beam: float, laser: str | None = None) -> str:
     """The weakest evidence of a measured candidate, in words."""
-    return describe_weakest(evidence(m, beam), m.snr, m.roundness, m.clutter_ratio, m.colour)
+    return describe_weakest(evidence(m, beam, laser), m.snr, m.roundness, m.clutter_ratio,
+                            m.colour)
 
 
-def _score(m: Measure, beam: float) -> float:
-    return float(np.prod(list(evidence(m, beam).values())))
+def _score(m: Measure, beam: float, laser: str | None = None) -> float:
+    return float(np.prod(list(evidence(m, beam, laser).values())))
+
+
+def single_score(m: Measure, beam: float, laser: str) -> float:
+    """A candidate's score for a laser on its own (without the range agreement)."""
+    ev = evidence(m, beam, laser)
+    ev.pop("range")
+    return float(np.prod(list(ev.values())))
+
+
+def _lit(m: Measure, beam: float, options: DetectionOptions) -> bool:
+    """Laser light for sure: it scores and its added light has the laser's colour."""
+    return (m.colour.measured and m.colour.term >= LIT_COLOUR
+            and _score(m, beam) >= options.min_score)
+
+
+def _mark_depth(las_name: str, i: int, region: SearchRegion, valid: list[Measure], dist: F64,
+                beam: F64, options: DetectionOptions) -> None:
+    """In place: candidates of a beam with laser light farther along it get ``depth`` DEPTH.
+
+    A beam lights nothing beyond the first surface it meets: laser-coloured light nearer than
+    other laser light on the same beam is a particle lit in the water, or the beam's glow.
+    Light nearer to another beam's line does not count.
+    """
+    admissible = [j for j in range(len(valid)) if dist[i, j] <= region.band_px]
+    if len(admissible) < 2:
+        return
+    xy = np.array([[valid[j].x, valid[j].y] for j in admissible])
+    rng = range_along_beam(xy, region.polylines[las_name], region.ranges[las_name])
+    own = [k for k, j in enumerate(admissible)
+           if dist[i, j] <= dist[:, j].min() and _lit(valid[j], float(beam[j]), options)]
+    far = max((rng[k] for k in own), default=-math.inf)
+    for k, j in enumerate(admissible):
+        if far > rng[k] * (1.0 + DEPTH_MARGIN):
+            valid[j].depth[las_name] = DEPTH
 
 
 def _laser_costs(
@@ -66,32 +111,46 @@ def _laser_costs(
                                 "is outside the image")
             continue
         dist[i] = distance_to_polyline(xy, line) if len(valid) else dist[i]
+    for i, las in enumerate(rig.lasers):
+        if not np.isfinite(dist[i]).any():
+            continue
         beam = beam_term(dist[i], band)
+        _mark_depth(las.name, i, region, valid, dist, beam, options)
         for j, m in enumerate(valid):
             if dist[i, j] <= band and las.color in ("any", m.color):
-                cost[i, j] = -math.log(max(_score(m, float(beam[j])), 1e-12))
+                cost[i, j] = -math.log(max(single_score(m, float(beam[j]), las.name), 1e-12))
     return cost, dist, unseen
 
 
 def assign_calibrated(
     rig: Rig, region: SearchRegion, valid: list[Measure], options: DetectionOptions
 ) -> tuple[dict[str, int], dict[str, str], F64]:
-    """Laser name -> index into ``valid`` by linear assignment; missing reasons; distances."""
+    """Laser name -> index into ``valid`` (chosen jointly, :mod:`.joint`); missing reasons;
+    distances."""
     cost, dist, missing = _laser_costs(rig, region, valid, options)
+    scores = np.where(cost < _INADMISSIBLE, np.exp(-cost), 0.0)
+    opts = {las.name: laser_options(las.name, scores[i], region, valid, MAX_OPTIONS)
+            for i, las in enumerate(rig.lasers) if las.calibrated and las.name not in missing}
+    picked = choose(opts, options.min_score)
+    lead = [(n, r[0]) for n, r in opts.items() if r and r[0].score >= options.min_score]
+    for name, ranked in opts.items():  # every option's range term, as choose() used it
+        others = [o.range_m for n, o in lead if n != name]
+        for o in ranked:
+            valid[o.index].range_fit[name] = range_term(o.range_m, others)
     chosen: dict[str, int] = {}
-    rows, cols = linear_sum_assignment(cost) if cost.size else (np.array([]), np.array([]))
-    for li, cj in zip(rows.tolist(), cols.tolist(), strict=True):
-        if cost[li, cj] >= _INADMISSIBLE:
-            continue
-        las, score = rig.lasers[li], math.exp(-cost[li, cj])
-        m = valid[cj]
-        beam = float(beam_term(dist[li, cj : cj + 1], region.band_px)[0])
-        if score < options.min_score:
-            m.reason = f"score {score:.2f} below min_score for {las.name}"
-            continue
-        m.score, m.laser, m.reason = score, las.name, f"assigned to {las.name}"
-        m.evidence = evidence(m, beam)
-        chosen[las.name] = cj
+    for name, o in picked.items():
+        li = rig.names.index(name)
+        m = valid[o.index]
+        beam = float(beam_term(dist[li, o.index : o.index + 1], region.band_px)[0])
+        m.evidence = evidence(m, beam, name)
+        m.score = float(np.prod(list(m.evidence.values())))
+        m.laser, m.reason = name, f"assigned to {name}"
+        chosen[name] = o.index
+    for name, ranked in opts.items():
+        for o in ranked:
+            m = valid[o.index]
+            if m.laser is None and not m.reason and _score(m, 1.0, name) < options.min_score:
+                m.reason = f"score below min_score for {name}"
     return chosen, missing, dist
 
 
@@ -139,7 +198,7 @@ def explain_unused(rig: Rig, valid: list[Measure], dist: F64, band: float,
         finite = np.isfinite(col)
         li = int(np.argmin(np.where(finite, col, np.inf))) if finite.any() else None
         beam = float(beam_term(col[li : li + 1], band)[0]) if li is not None else 1.0
-        m.evidence = evidence(m, beam)
+        m.evidence = evidence(m, beam, names[li] if li is not None else None)
         m.score = float(np.prod(list(m.evidence.values())))
         if m.reason:
             continue

@@ -64,20 +64,49 @@ def beam_polyline_px(
     only those whose normalised coordinates lie within the (padded) field of view are projected,
     so lens-distortion polynomials are never evaluated far outside their valid domain.
     """
+    return beam_samples(camera, laser, min_range_m, max_range_m, samples)[0]
+
+
+def beam_samples(
+    camera: Camera, laser: Laser, min_range_m: float, max_range_m: float, samples: int = 64
+) -> tuple[F64, F64]:
+    """(K, 2) image polyline of a calibrated beam (see :func:`beam_polyline_px`) and the (K,)
+    range along the beam (metres from its origin) of each vertex."""
+    empty = (np.zeros((0, 2)), np.zeros(0))
     if laser.origin is None or laser.direction is None:
-        return np.zeros((0, 2))
-    inv = np.linspace(1.0 / max_range_m, 1.0 / min_range_m, samples)
-    pts = laser.origin[None, :] + (1.0 / inv)[:, None] * laser.direction[None, :]
-    pts = pts[pts[:, 2] > 1e-6]
+        return empty
+    ranges = 1.0 / np.linspace(1.0 / max_range_m, 1.0 / min_range_m, samples)
+    pts = laser.origin[None, :] + ranges[:, None] * laser.direction[None, :]
+    front = pts[:, 2] > 1e-6
+    pts, ranges = pts[front], ranges[front]
     if len(pts) == 0:
-        return np.zeros((0, 2))
+        return empty
     xy_n = pts[:, :2] / pts[:, 2:3]
     bounds = _normalised_bounds(camera)
     inside = np.all((xy_n >= bounds[0]) & (xy_n <= bounds[1]), axis=1)
     if not np.any(inside):
-        return np.zeros((0, 2))
+        return empty
     xy = camera.project(pts[inside])
-    return np.asarray(xy[np.all(np.isfinite(xy), axis=1)], dtype=np.float64)
+    ok = np.all(np.isfinite(xy), axis=1)
+    return np.asarray(xy[ok], dtype=np.float64), np.asarray(ranges[inside][ok])
+
+
+def range_along_beam(xy: F64, polyline: F64, ranges: F64) -> F64:
+    """(N,) range (metres along the beam) of the polyline point nearest each of (N, 2) points,
+    interpolated in inverse range (linear in the image for a pinhole); NaN if K < 2."""
+    xy = np.atleast_2d(xy)
+    if len(polyline) < 2:
+        return np.full(len(xy), np.nan)
+    a, b = polyline[:-1], polyline[1:]
+    ab = b - a
+    ap = xy[:, None, :] - a[None, :, :]
+    t = np.clip(np.sum(ap * ab[None], axis=2) / np.maximum(np.sum(ab * ab, axis=1), 1e-12),
+                0.0, 1.0)
+    closest = a[None] + t[..., None] * ab[None]
+    seg = np.argmin(np.linalg.norm(xy[:, None, :] - closest, axis=2), axis=1)
+    tt = t[np.arange(len(xy)), seg]
+    inv = (1.0 - tt) / ranges[seg] + tt / ranges[seg + 1]
+    return np.asarray(1.0 / inv)
 
 
 def distance_to_polyline(xy: F64, polyline: F64) -> F64:
@@ -103,6 +132,7 @@ class SearchRegion:
 
     roi: tuple[int, int, int, int]  # x0, y0, x1, y1 (array indices, end exclusive)
     polylines: dict[str, F64]  # calibrated laser -> (K, 2) beam segment, image COLMAP px
+    ranges: dict[str, F64]  # calibrated laser -> (K,) range along the beam of each vertex, m
     near: NDArray[np.bool_] | None  # (y1-y0, x1-x0) within reach of a band; None = everywhere
     band_px: float
     max_radius: float
@@ -113,14 +143,16 @@ def search_region(camera: Camera, rig: Rig, options: DetectionOptions) -> Search
     band = options.band_px or default_band_px(camera.width, camera.height)
     max_radius = options.max_spot_radius_px or default_max_spot_radius_px(
         camera.width, camera.height)
-    polylines = {las.name: beam_polyline_px(camera, las, options.min_range_m, options.max_range_m)
-                 for las in rig.lasers if las.calibrated}
+    samples = {las.name: beam_samples(camera, las, options.min_range_m, options.max_range_m)
+               for las in rig.lasers if las.calibrated}
+    polylines = {name: xy for name, (xy, _) in samples.items()}
+    ranges = {name: r for name, (_, r) in samples.items()}
     full = (0, 0, camera.width, camera.height)
     if not all(las.calibrated for las in rig.lasers):
-        return SearchRegion(full, polylines, None, band, max_radius)
+        return SearchRegion(full, polylines, ranges, None, band, max_radius)
     pts = [p for p in polylines.values() if len(p)]
     if not pts:
-        return SearchRegion((0, 0, 0, 0), polylines, None, band, max_radius)
+        return SearchRegion((0, 0, 0, 0), polylines, ranges, None, band, max_radius)
     allp = np.concatenate(pts)
     margin = band + 2.0 * max_radius + 4.0 * max(options.spot_sigmas_px) + 4.0
     lo = np.floor(allp.min(axis=0) - margin).astype(int)
@@ -128,12 +160,21 @@ def search_region(camera: Camera, rig: Rig, options: DetectionOptions) -> Search
     x0, y0 = max(0, int(lo[0])), max(0, int(lo[1]))
     x1, y1 = min(camera.width, int(hi[0])), min(camera.height, int(hi[1]))
     if x1 - x0 < 8 or y1 - y0 < 8:
-        return SearchRegion((0, 0, 0, 0), polylines, None, band, max_radius)
+        return SearchRegion((0, 0, 0, 0), polylines, ranges, None, band, max_radius)
     near = np.zeros((y1 - y0, x1 - x0), dtype=np.uint8)
     for line in pts:
         # COLMAP px -> array index coordinates of the crop: subtract 0.5 and the crop origin
         idx = np.round((line - 0.5 - [x0, y0]) * 16).astype(np.int32).reshape(-1, 1, 2)
         cv2.polylines(near, [idx], False, 255, thickness=2 * int(math.ceil(band)) + 5,
                       shift=4)
-    return SearchRegion((x0, y0, x1, y1), polylines, near > 0, band, max_radius)
+    return SearchRegion((x0, y0, x1, y1), polylines, ranges, near > 0, band, max_radius)
 
+
+def scene_mask(region: SearchRegion) -> NDArray[np.bool_] | None:
+    """Pixels of the crop away from every band (the lasers' own light: spots, beam glow), where
+    the scene's clutter is measured; None when the whole image is searched."""
+    if region.near is None:
+        return None
+    grow = 2 * int(math.ceil(region.max_radius)) + 1
+    wide = cv2.dilate(region.near.astype(np.uint8), np.ones((grow, grow), np.uint8))
+    return np.asarray(wide == 0)

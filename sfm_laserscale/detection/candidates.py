@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from sfm_laserscale.detection.beams import SearchRegion
+from sfm_laserscale.detection.beams import SearchRegion, scene_mask
 from sfm_laserscale.detection.options import DetectionOptions
 from sfm_laserscale.detection.refine import (
     NeighbourModel,
@@ -29,6 +29,7 @@ from sfm_laserscale.detection.refine import (
     spot_patch,
 )
 from sfm_laserscale.detection.response import (
+    CHANNELS,
     Channels,
     Planes,
     blob_response,
@@ -73,6 +74,8 @@ class Measure:
     laser: str | None = None
     reason: str = ""
     evidence: dict[str, float] = field(default_factory=dict)  # final, for the chosen laser
+    depth: dict[str, float] = field(default_factory=dict)  # laser -> depth term (assign.py)
+    range_fit: dict[str, float] = field(default_factory=dict)  # laser -> range term (joint.py)
 
     @property
     def base_score(self) -> float:
@@ -96,21 +99,22 @@ class _Source:
     where: NDArray[np.bool_] | None  # maxima allowed only here (None: everywhere)
 
 
-def _source(name: str, plane: F32, options: DetectionOptions,
+def _source(name: str, plane: F32, options: DetectionOptions, scene: NDArray[np.bool_] | None,
             where: NDArray[np.bool_] | None = None) -> _Source:
     dog = blob_response(plane, options.spot_sigmas_px)
     threshold = max(4.0 * robust_std(dog[::4, ::4]), 4.0 / 255.0)
-    return _Source(name, plane, dog, threshold, clutter_level(dog), where)
+    return _Source(name, plane, dog, threshold, clutter_level(dog, where=scene), where)
 
 
 def _sources(channels: Channels, planes: Planes, options: DetectionOptions,
              region: SearchRegion) -> list[_Source]:
     """The colour response, and the brightness response where the laser channel clips."""
-    out = [_source("colour", planes.resp, options)]
+    scene = scene_mask(region)
+    out = [_source("colour", planes.resp, options, scene)]
     clipped = planes.clipped_laser if region.near is None else planes.clipped_laser & region.near
     if clipped.any():
         near_clip = cv2.dilate(clipped.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-        out.append(_source("bright", brightness(channels), options, near_clip))
+        out.append(_source("bright", brightness(channels), options, scene, near_clip))
     return out
 
 
@@ -177,9 +181,9 @@ def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
     m.x, m.y = x, y
     m.sigma_px = math.hypot(sig, options.sigma_floor_px)
     if options.colour_evidence:
-        light = added_light(planes.channels, planes.clipped_any, x, y, m.radius_px,
-                            m.support_px, planes.laser_rgb)
-        m.colour = colour_evidence(light, options.colour_tau)
+        light = added_light(planes.channels, planes.clipped_laser, planes.clipped_any, x, y,
+                            m.radius_px, m.support_px)
+        m.colour = colour_evidence(light, CHANNELS[m.color], options.colour_tau)
     else:
         m.colour = ColourEvidence(1.0)
     m.terms = {"contrast": contrast_term(m.snr, options.snr_half),

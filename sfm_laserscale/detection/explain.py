@@ -32,10 +32,10 @@ def _line(m: Measure, las: Laser, d: float, band: float, options: DetectionOptio
     if m.laser is not None:
         return f"{where} was taken by {m.laser}"
     beam = float(beam_term(np.array([d]), band)[0])
-    score = float(np.prod(list(evidence(m, beam).values())))
+    score = float(np.prod(list(evidence(m, beam, las.name).values())))
     if score < options.min_score:
         return (f"{where} score {score:.2f} < min_score {options.min_score:g}: "
-                f"{why_weak(m, beam)}")
+                f"{why_weak(m, beam, las.name)}")
     return f"{where} score {score:.2f}: {m.reason}"
 
 
@@ -54,7 +54,7 @@ def near_misses(las: Laser, measures: list[Measure], region: SearchRegion,
         if m.rejected is not None:
             return (1, -m.response)
         beam = float(beam_term(dist[i : i + 1], region.band_px)[0])
-        return (0, -float(np.prod(list(evidence(m, beam).values()))))
+        return (0, -float(np.prod(list(evidence(m, beam, las.name).values()))))
 
     best = sorted(inside, key=rank)[:NEAR_MISSES]
     return [same[i] for i in best], dist[best]

@@ -229,17 +229,21 @@ def local_maxima(dog: F32, min_value: float) -> NDArray[np.intp]:
     return np.column_stack([rows[order], cols[order]])
 
 
-def clutter_level(dog: F32, quantile: float = 99.0) -> float:
+def clutter_level(dog: F32, quantile: float = 99.0, where: NDArray[np.bool_] | None = None
+                  ) -> float:
     """The scene's blob clutter: ``quantile`` % of the DoG at its positive 5×5 local maxima.
 
     A laser image holds a handful of spots among thousands of local maxima (noise, texture), so
-    this measures the texture's strongest blobs, not the spots. On a laser-free textured
-    seafloor the best texture blobs reach ~1–3.4× this level, laser spots (even very faint,
-    on flat water) 10× and more (measured, docs/DETECTION.md). 0 when there are fewer than
-    MIN_MAXIMA_FOR_CLUTTER maxima.
+    this measures the texture's strongest blobs, not the spots. ``where``: count only maxima
+    there (away from the beam bands, whose own laser light — spots, the beams' glow in the
+    water — is not the scene's); all of them when fewer than MIN_MAXIMA_FOR_CLUTTER lie there.
+    0 when there are fewer than MIN_MAXIMA_FOR_CLUTTER maxima in all.
     """
     dilated = cv2.dilate(dog, np.ones((5, 5), np.uint8), borderType=cv2.BORDER_REPLICATE)
-    values = dog[(dog >= dilated) & (dog > 0)]
+    peaks = (dog >= dilated) & (dog > 0)
+    if where is not None and int(np.count_nonzero(peaks & where)) >= MIN_MAXIMA_FOR_CLUTTER:
+        peaks &= where
+    values = dog[peaks]
     if values.size < MIN_MAXIMA_FOR_CLUTTER:
         return 0.0
     return float(np.percentile(values, quantile))

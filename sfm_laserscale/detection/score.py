@@ -5,16 +5,16 @@
 - *clutter*: how far its blob response stands above the scene's own blobs,
   ``r² / (r² + clutter_half²)`` with r the response in clutter levels (1 when the region is too
   small to have a clutter level);
-- *colour*: the light the candidate adds over its surroundings (:func:`added_light`, unclipped
-  pixels only), split into the laser's expected colour, the colour along which the scene's
-  texture varies there, and the rest. Scene texture and pale clutter add light of the scene's
-  colour, marine snow and highlights mostly white light; a laser adds its own. The term is the
-  logistic of ``(laser-coloured share − ½) / colour_tau``: ~1 for laser-coloured light, ~0 for
-  scene-coloured light, 0.5 when the colours cannot be told apart (a laser of the water's
-  colour, or a spot clipped everywhere, whose colour cannot be measured).
+- *colour*: evidence against light of the scene's own colour. The light the candidate adds
+  over its surroundings (:func:`added_light`) in the laser's channel is compared with what the
+  scene's colour there explains (:func:`colour_evidence`): scene texture and pale clutter add
+  light of the scene's colour, highlights and marine snow white light, a laser its own. 1 for
+  laser-coloured light or when the colour cannot be measured (a clipped core, whose edge the
+  camera's processing of highlights whitens), falling to ~0 for the scene's colour;
+- *beam*: ``exp(-½ (d / (band / 2))²)`` of the distance to the beam's image;
+- *depth*: DEPTH when laser light lies farther along the same beam (:mod:`.assign`).
 
-Colour is evidence, not a gate: a saturated white core with no measurable halo keeps a neutral
-colour term, and the other terms decide.
+Colour is evidence, not a gate.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from sfm_laserscale.detection.refine import grid, texture_direction, window
+from sfm_laserscale.detection.refine import grid, window
 from sfm_laserscale.detection.response import Channels
 
 F64 = NDArray[np.float64]
@@ -33,16 +33,24 @@ F64 = NDArray[np.float64]
 MIN_COLOUR_PIXELS = 4
 #: the added light must exceed this many times its noise for its colour to count
 MIN_COLOUR_SNR = 3.0
-#: below this sine of the angle between the laser's and the texture's colours, the two cannot
-#: be told apart (a laser of the water's colour): the colour is not evidence
-MIN_COLOUR_SEPARATION = 0.1
+#: the colour of a clipped core is read on its rim, from this far beyond the clipped pixels (px)
+RIM_START = 0.5
+#: … over this width (px)
+RIM_WIDTH = 2.5
+#: angular sectors of a spot whose median added light is its colour
+SECTORS = 8
+#: laser-coloured share of the added light at which the colour term is ½
+MID_FRACTION = 0.25
+#: the scene's laser/other channel ratio used is at most this (a scene of nearly the laser's
+#: colour leaves the colour undecided rather than negative)
+MAX_SCENE_RATIO = 1.5
 
 
 @dataclass(frozen=True)
 class ColourEvidence:
-    """The light a candidate adds, split into the laser's colour, the scene's texture colour and
-    the rest; ``fraction`` the laser-coloured share (0–1); ``term`` the evidence;
-    ``measured`` False when the split is not possible (term 0.5)."""
+    """How much of the light a candidate adds in the laser's channel the scene's own colour
+    cannot explain (``fraction``, 0–1), and the term; ``measured`` False when it could not be
+    measured (term 0.5)."""
 
     term: float
     fraction: float = math.nan
@@ -51,70 +59,95 @@ class ColourEvidence:
 
 @dataclass(frozen=True)
 class AddedLight:
-    """A candidate's light per component (laser colour, texture colour, orthogonal rest): the
-    contrast of each over planes fitted on its ring, and their noise."""
+    """Mean linear RGB a candidate adds over planes fitted on its ring (``delta_rgb``), the
+    ring's mean colour (``scene_rgb``) and the noise of ``delta_rgb`` (per channel)."""
 
-    laser: float
-    texture: float
-    rest: float
-    noise: float
-
-
-def _basis(texture: F64, laser_rgb: F64) -> F64 | None:
-    """(3, 3) columns: texture colour, laser colour, their normal (units); None if parallel."""
-    t = texture / max(float(np.linalg.norm(texture)), 1e-12)
-    ell = laser_rgb / max(float(np.linalg.norm(laser_rgb)), 1e-12)
-    n = np.cross(t, ell)
-    if float(np.linalg.norm(n)) < MIN_COLOUR_SEPARATION:
-        return None
-    return np.column_stack([t, ell, n / float(np.linalg.norm(n))])
+    delta_rgb: F64
+    scene_rgb: F64
+    noise: F64
 
 
-def added_light(channels: Channels, clipped_any: NDArray[np.bool_], x: float, y: float,
-                radius: float, support: float, laser_rgb: F64) -> AddedLight | None:
-    """The light added by a candidate at (x, y) (crop COLMAP px), split by colour.
+def _spot_zones(clipped_laser: NDArray[np.bool_], rr: F64, radius: float, support: float
+                ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """(inner, ring) masks of the window where a spot's colour and its background are measured.
 
-    Every unclipped pixel is split into the scene's texture colour (:func:`texture_direction`
-    of its ring), the laser's colour and the colour normal to both; each component's contrast
-    is its mean over the spot's unclipped pixels (within ``max(2, radius) + 2`` px, or
-    ``2 radius + 3`` px when the core clips: the halo around a white core) above a plane fitted
-    on the ring beyond the support. None when the colours are parallel or too few pixels
-    are usable.
+    An unclipped spot: inner within ``max(2, radius) + 2`` px, ring beyond the support. A spot
+    whose laser channel clips: its colour is read on the rim of the clipped core (RIM_START to
+    RIM_START + RIM_WIDTH px beyond it), where its light falls through the channels' range (a
+    small spot's own light is gone a few pixels further out), and the ring lies beyond that.
     """
-    win = window(channels.rgb.shape, int(math.floor(y)), int(math.floor(x)),
-                 int(math.ceil(max(support, 4.0))) + 3)
+    core = clipped_laser & (rr <= max(2.0, radius) + 1.0)
+    if not core.any():
+        inner = rr <= max(2.0, radius) + 2.0
+        return inner & (rr < max(support, 4.0)), rr >= max(support, 4.0)
+    r_clip = float(rr[core].max())
+    start = r_clip + RIM_START
+    stop = start + RIM_WIDTH
+    return (rr >= start) & (rr <= stop), (rr >= max(stop + 1.0, support))
+
+
+def added_light(channels: Channels, clipped_laser: NDArray[np.bool_],
+                clipped_any: NDArray[np.bool_], x: float, y: float, radius: float,
+                support: float) -> AddedLight | None:
+    """The light added by a candidate at (x, y) (crop COLMAP px); None when too few pixels are
+    usable.
+
+    Per channel, the light of the spot's unclipped pixels (:func:`_spot_zones`) above a plane
+    fitted on its ring, averaged in SECTORS angular sectors and the median of those taken: a
+    spot's light is the same all around it, a texture edge through the spot is not.
+    """
+    reach = int(math.ceil(max(support, 2.0 * radius + 8.0))) + 6
+    win = window(channels.rgb.shape, int(math.floor(y)), int(math.floor(x)), reach)
     gx, gy = grid(win)
     rr = np.hypot(gx - x, gy - y)
     ok = ~clipped_any[win]
-    core_clips = bool(clipped_any[win][rr <= max(2.0, radius)].any())
-    reach = max(2.0, radius) + (radius + 1.0 if core_clips else 0.0) + 2.0
-    inner = (rr <= reach) & (rr < max(support, 4.0)) & ok
-    ring = (rr >= max(support, 4.0)) & ok
+    inner, ring = _spot_zones(clipped_laser[win], rr, radius, support)
+    inner &= ok
+    ring &= ok & (rr <= reach)
     if inner.sum() < MIN_COLOUR_PIXELS or ring.sum() < 2 * MIN_COLOUR_PIXELS:
         return None
     rgb = channels.linear(win)
-    basis = _basis(texture_direction(rgb[ring], laser_rgb), laser_rgb)
-    if basis is None:
-        return None
-    parts = rgb @ np.linalg.inv(basis).T  # (h, w, 3): texture, laser, rest
     design = np.column_stack([np.ones(ring.sum()), gx[ring] - x, gy[ring] - y])
-    coef, *_ = np.linalg.lstsq(design, parts[ring], rcond=None)
+    coef, *_ = np.linalg.lstsq(design, rgb[ring], rcond=None)  # (3, 3): a plane per channel
     pred = np.column_stack([np.ones(inner.sum()), gx[inner] - x, gy[inner] - y]) @ coef
-    texture, laser, rest = (parts[inner] - pred).mean(axis=0)
-    noise = float(np.linalg.norm((parts[ring] - design @ coef).std(axis=0))
-                  / math.sqrt(inner.sum()))
-    return AddedLight(laser=float(laser), texture=float(texture), rest=float(rest), noise=noise)
+    noise = (rgb[ring] - design @ coef).std(axis=0) / math.sqrt(inner.sum())
+    sector = np.floor((np.arctan2(gy[inner] - y, gx[inner] - x) + math.pi)
+                      * (SECTORS / (2 * math.pi))).astype(np.int64) % SECTORS
+    delta = rgb[inner] - pred
+    means = [delta[sector == k].mean(axis=0) for k in range(SECTORS) if np.any(sector == k)]
+    return AddedLight(delta_rgb=np.median(np.asarray(means), axis=0),
+                      scene_rgb=rgb[ring].mean(axis=0), noise=noise)
 
 
-def colour_evidence(light: AddedLight | None, tau: float) -> ColourEvidence:
-    """The colour term: the logistic of (laser-coloured share − ½) / ``tau``."""
+def colour_evidence(light: AddedLight | None, channel: int, tau: float) -> ColourEvidence:
+    """The colour term of a candidate for a laser brightest in ``channel`` (0, 1, 2).
+
+    ``fraction = max(0, Δlaser − max(k, 1)·Δother) / Δlaser``: Δ the added light, other the
+    brighter of the two other channels, k the scene's laser/other ratio. Light of the scene's own
+    colour (texture, pale clutter) and white light (the lamps' colour: glints, marine snow) give
+    ≤ 0, a laser ~0.3–1 (however the camera renders its crosstalk). Not measurable: 1 (no
+    evidence either way).
+    """
     if light is None:
-        return ColourEvidence(0.5)
-    total = max(light.laser, 0.0) + abs(light.texture) + abs(light.rest)
-    if total < MIN_COLOUR_SNR * light.noise:
-        return ColourEvidence(0.5)
-    fraction = max(light.laser, 0.0) / total
-    return ColourEvidence(1.0 / (1.0 + math.exp(-(fraction - 0.5) / tau)), fraction, True)
+        return ColourEvidence(1.0)
+    others = [k for k in range(3) if k != channel]
+    d_laser = float(light.delta_rgb[channel])
+    k_other = max(others, key=lambda k: float(light.delta_rgb[k]))
+    d_other = float(light.delta_rgb[k_other])
+    if d_laser < MIN_COLOUR_SNR * float(light.noise[channel]):
+        if d_other < MIN_COLOUR_SNR * float(light.noise[k_other]):
+            return ColourEvidence(1.0)
+        return ColourEvidence(_against(0.0, tau), 0.0, True)
+    ratio = float(light.scene_rgb[channel]) / max(float(light.scene_rgb[k_other]), 1e-6)
+    # beyond the scene's colour and beyond white (the lamps' own colour: glints, snow)
+    fraction = max(0.0, d_laser - max(min(ratio, MAX_SCENE_RATIO), 1.0) * d_other) / d_laser
+    return ColourEvidence(_against(fraction, tau), fraction, True)
+
+
+def _against(fraction: float, tau: float) -> float:
+    """1 for laser-coloured light, falling to ~0 for the scene's colour: ``min(1, 2 logistic((
+    fraction − MID_FRACTION) / tau))``."""
+    return min(1.0, 2.0 / (1.0 + math.exp(-(fraction - MID_FRACTION) / tau)))
 
 
 def contrast_term(snr: float, snr_half: float) -> float:
@@ -141,7 +174,12 @@ def describe_weakest(evidence: dict[str, float], snr: float, roundness: float,
         return f"no stronger than the scene's own blobs ({clutter_ratio:.1f} × clutter level)"
     if name == "colour" and colour.measured:
         return (f"colour of the scene, not of the laser (only {100 * colour.fraction:.0f} % of "
-                f"the light it adds has the laser's colour)")
+                f"the light it adds in the laser's channel is beyond the scene's colour)")
     if name == "colour":
         return "colour not measurable"
+    if name == "range":
+        return "its range along the beam disagrees with the other lasers' spots"
+    if name == "depth":
+        return ("in front of laser light farther along its beam (a particle lit in the water, "
+                "or the beam's glow)")
     return f"far from the beam (beam term {evidence[name]:.2f})"

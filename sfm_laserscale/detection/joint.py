@@ -1,0 +1,81 @@
+"""One spot per calibrated laser, chosen with the agreement of the spots' ranges.
+
+The beams of a scaler hit one seafloor a few decimetres apart, so their ranges along the beams
+agree to within what the floor's slope and relief allow; a candidate of one beam's band that is
+something else (clutter, a glint, a lit particle) sits at a range anywhere from the beam's near
+end to its far end. Each candidate's position along its beam gives its range
+(:func:`~sfm_laserscale.detection.beams.range_along_beam`). Each laser's MAX_OPTIONS best
+candidates get the range term ``RANGE_FLOOR + (1 − RANGE_FLOOR)·exp(-½ (ln(r / r_ref) /
+RANGE_SIGMA_LN)²)``, r_ref the median range of the other lasers' best candidates (those
+reaching ``min_score`` on their own): the floor keeps a strong spot on a step of the relief (a
+scarp, a coral head) that disagrees with the others. A laser takes its best candidate by score ×
+range term when that reaches ``min_score``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sfm_laserscale.detection.beams import SearchRegion, range_along_beam
+from sfm_laserscale.detection.candidates import Measure
+
+F64 = NDArray[np.float64]
+#: candidates per laser considered
+MAX_OPTIONS = 5
+#: spread (natural log of the range ratio) of the spots' ranges on one seafloor: 0.4 ≈ ±50 %
+RANGE_SIGMA_LN = 0.4
+#: the range term never falls below this (the seafloor may have steps: scarps, coral heads)
+RANGE_FLOOR = 0.35
+#: candidates scoring below this are not considered at all
+MIN_CONSIDERED = 0.02
+
+
+@dataclass(frozen=True)
+class Option:
+    """A candidate for a laser: its index in ``valid``, its score and its range (m)."""
+
+    index: int
+    score: float
+    range_m: float
+
+
+def range_term(range_m: float, others_m: list[float]) -> float:
+    """Agreement of a spot's range with the median range of the other chosen spots."""
+    if not others_m or not math.isfinite(range_m):
+        return 1.0
+    z = math.log(range_m / float(np.median(others_m))) / RANGE_SIGMA_LN
+    return RANGE_FLOOR + (1.0 - RANGE_FLOOR) * math.exp(-0.5 * z * z)
+
+
+def laser_options(name: str, scores: F64, region: SearchRegion, valid: list[Measure],
+                  per_laser: int) -> list[Option]:
+    """The best ``per_laser`` candidates of one laser (scores (N,), 0 = inadmissible)."""
+    order = [int(j) for j in np.argsort(-scores) if scores[j] >= MIN_CONSIDERED][:per_laser]
+    if not order:
+        return []
+    xy = np.array([[valid[j].x, valid[j].y] for j in order])
+    ranges = range_along_beam(xy, region.polylines[name], region.ranges[name])
+    return [Option(j, float(scores[j]), float(r)) for j, r in zip(order, ranges, strict=True)]
+
+
+def choose(options: dict[str, list[Option]], min_score: float) -> dict[str, Option]:
+    """Laser -> chosen option: each laser's best by score × range term against the median
+    range of the other lasers' best-scoring candidates (those reaching ``min_score``), if it
+    reaches ``min_score``; a candidate wanted by two lasers goes to the higher value."""
+    lead = {n: opts[0] for n, opts in options.items() if opts and opts[0].score >= min_score}
+    picked: dict[str, tuple[Option, float]] = {}
+    for name, opts in options.items():
+        others = [o.range_m for n, o in lead.items() if n != name]
+        ranked = [(o, o.score * range_term(o.range_m, others)) for o in opts]
+        best = max(ranked, key=lambda ov: ov[1], default=None)
+        if best is not None and best[1] >= min_score:
+            picked[name] = best
+    chosen: dict[str, Option] = {}
+    for name, (o, _) in sorted(picked.items(), key=lambda kv: -kv[1][1]):
+        if all(c.index != o.index for c in chosen.values()):
+            chosen[name] = o
+    return chosen

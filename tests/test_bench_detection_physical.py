@@ -1,0 +1,64 @@
+"""scripts/bench_detection_physical.py: scoring rules and a reduced end-to-end run."""
+
+from __future__ import annotations
+
+from types import ModuleType, SimpleNamespace
+
+import numpy as np
+import pytest
+from script_loader import load_script
+
+from sfm_laserscale.model import Spot
+from sfm_laserscale.synthetic.underwater import Frame
+
+
+@pytest.fixture(scope="module")
+def bench() -> ModuleType:
+    return load_script("bench_detection_physical")
+
+
+def _frame(truth: dict[str, tuple[float, float] | None]) -> Frame:
+    return Frame(image_rgb=np.zeros((4, 4, 3), np.uint8), camera_spec="", rig_toml="",
+                 truth=truth, meta={})
+
+
+def test_scoring_found_missed_false(bench: ModuleType) -> None:
+    frame = _frame({"L1": (100.0, 100.0), "L2": (200.0, 100.0), "L3": (300.0, 50.0),
+                    "L4": None})
+    result = SimpleNamespace(
+        spots=(Spot("L1", 101.0, 100.5), Spot("L2", 203.0, 100.0), Spot("L4", 10.0, 10.0)),
+        missing={"L3": "no candidate near the beam"})
+    rec = bench.score_frame(frame, result)
+    assert [f["laser"] for f in rec["found"]] == ["L1"]
+    assert rec["found"][0]["error_px"] == pytest.approx(np.hypot(1.0, 0.5))
+    assert {m["laser"] for m in rec["misses"]} == {"L2", "L3"}
+    assert any(m["reason"] == "no candidate near the beam" for m in rec["misses"])
+    assert {f["laser"] for f in rec["falses"]} == {"L2", "L4"}  # too far; laser off
+    assert rec["truths"] == 3 and rec["reported"] == 3
+
+
+def test_summary_rows(bench: ModuleType) -> None:
+    recs = [{"condition": "c", "size": "8x8", "index": i, "truths": 2, "reported": 2,
+             "found": [{"laser": "L1", "error_px": e}], "misses": [{"laser": "L2",
+                                                                     "reason": "far 3.2 px"}],
+             "falses": [{"laser": "L2"}], "detect_s": 0.1, "render_s": 0.2}
+            for i, e in enumerate([0.1, 0.3])]
+    (row,) = bench.summarise(recs)
+    assert row["spots"] == 4 and row["found"] == 2 and row["found_pct"] == 50.0
+    assert row["false_pct"] == 50.0 and row["false_per_image"] == 1.0
+    assert row["median_px"] == pytest.approx(0.2) and row["max_px"] == 0.3
+    assert row["miss_reasons"] == [("far # px", 2)]
+    kind = bench._reason_kind("no green spot accepted within 14.0 px of its beam: (950.4, 234.1)"
+                              " score 0.20 < min_score 0.25: colour of the scene; (1.5, 2): x")
+    assert kind == "score # < min_score #: colour of the scene"
+    assert "| c | 8x8 |" in bench.markdown_table([row])
+
+
+def test_reduced_run_end_to_end(bench: ModuleType) -> None:
+    rows = bench.run_small(("clipped_cores", "no_lasers"), (480, 360), per_condition=1)
+    assert [r["condition"] for r in rows] == ["clipped_cores", "no_lasers"]
+    spots = {r["condition"]: r["spots"] for r in rows}
+    assert spots == {"clipped_cores": 4, "no_lasers": 0}
+    for r in rows:
+        assert r["found"] + len(r["misses"]) == r["spots"]
+        assert r["reported"] >= r["found"] and r["false"] == r["reported"] - r["found"]

@@ -1,0 +1,149 @@
+"""Evidence terms of spot detection: colour against the scene and white, laser light farther
+along a beam, agreement of the spots' ranges, and the reasons a laser has no spot."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sfm_laserscale.detection import DetectionOptions, beam_polyline_px, detect_spots
+from sfm_laserscale.detection.beams import beam_samples, range_along_beam, scene_mask
+from sfm_laserscale.detection.joint import Option, choose, range_term
+from sfm_laserscale.detection.score import AddedLight, colour_evidence
+from sfm_laserscale.model import Camera
+from sfm_laserscale.report.overlays import draw_overlay, near_misses
+from sfm_laserscale.rig import Rig, rig_from_dict
+from sfm_laserscale.synthetic.spots import paint_spot, to_uint8
+
+CAMERA = Camera(1, "PINHOLE", 1024, 768, np.array([900.0, 900.0, 512.0, 384.0]))
+WATER = (0.06, 0.30, 0.34)  # linear blue-green scene
+
+
+def _rig(color: str = "green", tilt_deg: float = 2.0) -> Rig:
+    t = math.radians(tilt_deg)
+    return rig_from_dict({"laser": [{"name": "L1", "origin": [0.165, 0.0, 0.0],
+                                     "direction": [-math.sin(t), 0.0, math.cos(t)],
+                                     "color": color}]})
+
+
+def _xy(rig: Rig, range_m: float) -> tuple[float, float]:
+    las = rig.lasers[0]
+    assert las.origin is not None and las.direction is not None
+    xy = CAMERA.project((las.origin + range_m * las.direction)[None, :])[0]
+    return float(xy[0]), float(xy[1])
+
+
+def _flat(noise: float, rng: np.random.Generator) -> np.ndarray:
+    img = np.empty((CAMERA.height, CAMERA.width, 3), np.float32)
+    img[:] = WATER
+    img += rng.normal(0.0, noise, img.shape).astype(np.float32)
+    return img
+
+
+def test_range_along_beam_recovers_the_range_of_beam_points() -> None:
+    rig = _rig()
+    line, ranges = beam_samples(CAMERA, rig.lasers[0], 0.5, 10.0)
+    assert len(line) > 10 and np.all(np.diff(ranges) < 0)  # far end first (1 / range grid)
+    for r in (0.8, 1.7, 3.3, 7.9):
+        got = range_along_beam(np.array([_xy(rig, r)]), line, ranges)[0]
+        assert got == pytest.approx(r, rel=2e-3)
+    np.testing.assert_allclose(line, beam_polyline_px(CAMERA, rig.lasers[0], 0.5, 10.0))
+
+
+def test_range_term_prefers_agreeing_ranges_but_keeps_a_floor() -> None:
+    assert range_term(3.0, []) == 1.0
+    assert range_term(3.0, [3.0, 3.1]) == pytest.approx(1.0, abs=2e-3)
+    assert 0.35 <= range_term(8.0, [3.0, 3.0]) < 0.4  # a scarp: never below the floor
+    # laser A's brightest candidate lies at 8 m where the three other spots are near 3 m
+    options = {"A": [Option(0, 0.6, 8.0), Option(1, 0.5, 3.1)],
+               "B": [Option(2, 0.8, 3.0)], "C": [Option(3, 0.7, 2.9)],
+               "D": [Option(4, 0.9, 3.2), Option(0, 0.2, 8.0)]}
+    chosen = choose(options, min_score=0.25)
+    assert {n: o.index for n, o in chosen.items()} == {"A": 1, "B": 2, "C": 3, "D": 4}
+    # nobody takes a candidate below min_score, and a candidate goes to one laser only
+    assert choose({"A": [Option(0, 0.2, 3.0)]}, 0.25) == {}
+    both = choose({"A": [Option(7, 0.9, 3.0)], "B": [Option(7, 0.6, 3.0)]}, 0.25)
+    assert list(both) == ["A"]
+
+
+@pytest.mark.parametrize(
+    ("delta", "measured", "low"),
+    [
+        ((0.02, 0.40, 0.04), True, False),  # green laser light
+        ((0.05, 0.24, 0.27), True, True),  # the scene's own colour (a pale speck)
+        ((0.20, 0.20, 0.20), True, True),  # white (a glint, marine snow)
+        ((0.00005, 0.0001, 0.0001), False, False),  # below the noise: no evidence
+    ],
+)
+def test_colour_evidence_against_scene_coloured_and_white_light(
+    delta: tuple[float, float, float], measured: bool, low: bool
+) -> None:
+    light = AddedLight(delta_rgb=np.array(delta), scene_rgb=np.array([0.06, 0.30, 0.34]),
+                       noise=np.full(3, 0.001))
+    ev = colour_evidence(light, 1, DetectionOptions().colour_tau)
+    assert ev.measured == measured
+    assert (ev.term < 0.3) if low else (ev.term == 1.0)
+    assert colour_evidence(None, 1, 0.07).term == 1.0
+
+
+def test_white_glint_on_the_beam_is_not_a_spot_and_the_reason_names_it() -> None:
+    rng = np.random.default_rng(5)
+    rig = _rig("green")
+    img = _flat(0.004, rng)
+    glint = _xy(rig, 2.5)
+    yy, xx = np.mgrid[0 : CAMERA.height, 0 : CAMERA.width] + 0.5
+    img += (2.5 * np.exp(-0.5 * ((xx - glint[0]) ** 2 + (yy - glint[1]) ** 2) / 2.0**2)
+            )[..., None].astype(np.float32)
+    res = detect_spots(to_uint8(img, 2.2), CAMERA, rig)
+    assert res.spots == ()
+    reason = res.missing["L1"]
+    assert "colour" in reason and "min_score" in reason
+    near = res.near_misses["L1"]
+    assert near and math.dist((near[0].x, near[0].y), glint) < 1.0
+
+
+def test_laser_light_farther_along_the_beam_marks_a_nearer_blob_as_lit_in_the_water() -> None:
+    """A particle crossing the beam near the camera glows in the laser's colour; the beam's end
+    on the floor lies farther along it: the far spot is the laser's, the near one is not."""
+    rng = np.random.default_rng(6)
+    rig = _rig("green")
+    img = _flat(0.004, rng)
+    floor, particle = _xy(rig, 3.0), _xy(rig, 0.9)
+    paint_spot(img, floor, "green", sigma_px=1.6, peak=1.2)
+    paint_spot(img, particle, "green", sigma_px=2.5, peak=3.0)  # brighter, bigger
+    res = detect_spots(to_uint8(img, 2.2), CAMERA, rig)
+    assert len(res.spots) == 1
+    assert math.dist((res.spots[0].x, res.spots[0].y), floor) < 0.3
+    near = [c for c in res.candidates if math.dist((c.x, c.y), particle) < 1.5 and c.evidence]
+    assert near and dict(near[0].evidence)["depth"] < 0.5
+
+
+def test_scene_clutter_is_measured_away_from_the_beam_bands() -> None:
+    from sfm_laserscale.detection.beams import search_region
+
+    rig = _rig()
+    region = search_region(CAMERA, rig, DetectionOptions())
+    mask = scene_mask(region)
+    assert mask is not None and region.near is not None
+    assert not np.any(mask & region.near)  # never inside a band
+    assert mask.mean() > 0.3  # most of the searched crop is scene
+
+
+def test_overlay_draws_the_near_misses_of_a_laser_without_spot() -> None:
+    rng = np.random.default_rng(5)
+    rig = _rig("green")
+    img = _flat(0.004, rng)
+    glint = _xy(rig, 2.5)
+    yy, xx = np.mgrid[0 : CAMERA.height, 0 : CAMERA.width] + 0.5
+    img += (2.5 * np.exp(-0.5 * ((xx - glint[0]) ** 2 + (yy - glint[1]) ** 2) / 2.0**2)
+            )[..., None].astype(np.float32)
+    rgb = to_uint8(img, 2.2)
+    res = detect_spots(rgb, CAMERA, rig)
+    misses = near_misses(res)
+    assert set(misses) == {"L1"}
+    plain = draw_overlay(rgb, CAMERA, rig, res.spots, {}, None, 0.5, 10.0)
+    marked = draw_overlay(rgb, CAMERA, rig, res.spots, {}, None, 0.5, 10.0,
+                          near_misses=misses)
+    assert plain.shape == marked.shape and np.count_nonzero(plain != marked) > 100
