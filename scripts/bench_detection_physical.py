@@ -10,7 +10,7 @@ Images come from the independent generator ``sfm_laserscale.synthetic.underwater
 shares no code or parameter with the detector): per condition and size, ``--per-condition``
 frames, each from its own ``numpy.random.Generator`` seeded with (seed, condition index, size
 index, image index). Every frame is given to ``sfm_laserscale.detection.detect_spots`` with
-its COLMAP camera (``detect_run.parse_camera``) and its rig (``rig.rig_from_dict``: the true
+its COLMAP camera (``commands.detect.parse_camera``) and its rig (``rig.rig_from_dict``: the true
 beams plus a small calibration error) and default ``DetectionOptions()``.
 
 Scoring: a true spot is FOUND when the detector assigns a spot to the right laser within
@@ -115,7 +115,7 @@ def score_frame(frame: Frame, result: Any) -> dict[str, Any]:
 
 def run_job(job: Job) -> dict[str, Any]:
     """Render, detect and score one image."""
-    from sfm_laserscale.detect_run import parse_camera
+    from sfm_laserscale.commands.detect import parse_camera
     from sfm_laserscale.detection import DetectionOptions, detect_spots
     from sfm_laserscale.rig import rig_from_dict
 

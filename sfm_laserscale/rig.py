@@ -1,4 +1,4 @@
-"""Laser rig file (TOML, DESIGN.md §4) -> validated :class:`Rig`.
+"""Laser rig file (TOML, docs/RIG.md) -> validated :class:`Rig`.
 
 All lengths are metres in the camera frame (x right, y down, z forward).
 Unknown keys are errors; origins are moved along their beam onto the laser
@@ -234,7 +234,7 @@ def load_rig(path: str | Path) -> Rig:
 
 
 def rig_to_toml(rig: Rig) -> str:
-    """Serialise a rig back to TOML (DESIGN.md §4 layout)."""
+    """Serialise a rig back to TOML (docs/RIG.md layout)."""
 
     def fmt(v: NDArray[np.float64]) -> str:
         return "[" + ", ".join(f"{x:.9g}" for x in v) + "]"

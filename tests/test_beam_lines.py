@@ -8,15 +8,15 @@ import math
 import numpy as np
 import pytest
 
-from sfm_laserscale.beam_lines import (
+from sfm_laserscale.commands.detect import DetectRunOptions, Frame, detect_many
+from sfm_laserscale.detection import beam_polyline_px, distance_to_polyline
+from sfm_laserscale.detection.beam_lines import (
     BeamLineOptions,
     ImageCandidates,
     learn_beam_lines,
     pseudo_beam,
     rig_with_learned_lines,
 )
-from sfm_laserscale.commands.detect import DetectRunOptions, Frame, detect_many
-from sfm_laserscale.detection import beam_polyline_px, distance_to_polyline
 from sfm_laserscale.model import Camera
 from sfm_laserscale.rig import rig_from_dict
 from sfm_laserscale.synthetic.spots import paint_spot, to_uint8

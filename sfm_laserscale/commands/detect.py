@@ -8,7 +8,7 @@ Writes (atomically: a staged folder replaces ``DIR`` only when everything is wri
     DIR/overlays/<stem>.jpg   spots and scores, beam lines and their search bands
 
 When the rig has uncalibrated lasers and at least ``min_images_for_lines`` images are given,
-their beam lines are learned from all images first (:mod:`sfm_laserscale.beam_lines`) and
+their beam lines are learned from all images first (:mod:`sfm_laserscale.detection.beam_lines`) and
 searched like calibrated beams.
 """
 
@@ -27,14 +27,14 @@ import numpy as np
 import pycolmap
 from numpy.typing import NDArray
 
-from sfm_laserscale.beam_lines import (
+from sfm_laserscale.detection import DetectionOptions, DetectionResult, detect_spots
+from sfm_laserscale.detection.beam_lines import (
     BeamLineOptions,
     BeamLinesResult,
     image_candidates,
     learn_beam_lines,
     rig_with_learned_lines,
 )
-from sfm_laserscale.detection import DetectionOptions, DetectionResult, detect_spots
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
 from sfm_laserscale.io.models import load_model
