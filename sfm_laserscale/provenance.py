@@ -22,7 +22,7 @@ from typing import Any
 from tqdm import tqdm
 
 from sfm_laserscale import __version__
-from sfm_laserscale.io.outputs import pid_alive
+from sfm_laserscale.io.locks import hold, is_held
 
 logger = logging.getLogger(__name__)
 _CHUNK = 1 << 22
@@ -145,7 +145,8 @@ class ColmapLog:
 
     def _collect(self) -> None:
         for path in sorted(self.folder.iterdir()):
-            if path in self._read or not path.is_file() or path.is_symlink():
+            if (path in self._read or not path.name.startswith("pycolmap-")
+                    or not path.is_file() or path.is_symlink()):
                 continue
             self._read.add(path)
             text = path.read_text(encoding="utf-8", errors="replace")
@@ -169,15 +170,17 @@ class ColmapLog:
 
 
 _GLOG_DIR_PREFIX = "sfm_laserscale_glog_"
+_GLOG_LOCK = "owner.lock"
 _GLOG_TIME = re.compile(r"[IWEF](\d{8} \d\d:\d\d:\d\d\.\d{6}) ")
 
 
 def _remove_stale_glog_dirs(parent: Path) -> None:
-    """Remove the temporary glog folders of runs whose process is gone (killed runs cannot
-    clean up after themselves); the folder name holds the process id."""
+    """Remove the temporary glog folders of runs that are gone (killed runs cannot clean up
+    after themselves): a folder whose lock (:mod:`sfm_laserscale.io.locks`) no living process
+    holds. A lock, not the process id in the name: runs in other containers sharing the
+    temporary folder have process ids this one cannot see."""
     for d in parent.glob(_GLOG_DIR_PREFIX + "*_*"):
-        pid = d.name[len(_GLOG_DIR_PREFIX):].split("_", 1)[0]
-        if pid.isdigit() and int(pid) != os.getpid() and not pid_alive(int(pid)):
+        if d.is_dir() and not is_held(d / _GLOG_LOCK):
             shutil.rmtree(d, ignore_errors=True)
 
 
@@ -201,6 +204,7 @@ def captured_colmap_log() -> Iterator[ColmapLog]:
     threshold = _stderr_threshold(lg)
     _remove_stale_glog_dirs(Path(tempfile.gettempdir()))
     folder = Path(tempfile.mkdtemp(prefix=f"{_GLOG_DIR_PREFIX}{os.getpid()}_"))
+    lock = hold(folder / _GLOG_LOCK)
     log = ColmapLog(folder)
     try:
         lg.logtostderr, lg.alsologtostderr = False, False
@@ -211,6 +215,7 @@ def captured_colmap_log() -> Iterator[ColmapLog]:
         log.stop()
         for key, value in saved.items():
             setattr(lg, key, value)
+        lock.close()
         shutil.rmtree(folder, ignore_errors=True)
 
 

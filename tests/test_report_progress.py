@@ -262,21 +262,31 @@ def test_run_log_without_pycolmap_lines() -> None:
 
 
 def test_stale_glog_folders_of_dead_runs_are_removed(tmp_path: Path) -> None:
-    """A killed run leaves its temporary glog folder; the next run removes it (by pid)."""
-    from sfm_laserscale.provenance import _remove_stale_glog_dirs
+    """A killed run leaves its temporary glog folder; the next run removes it: the folders
+    whose lock no living process holds, whatever process id their name carries (runs in other
+    containers sharing /tmp have ids this process cannot see)."""
+    from sfm_laserscale.io.locks import hold
+    from sfm_laserscale.provenance import _GLOG_LOCK, _remove_stale_glog_dirs
 
-    dead = subprocess.Popen([sys.executable, "-c", "pass"])
-    dead.wait()
-    names = {
-        "dead": f"sfm_laserscale_glog_{dead.pid}_x1",
-        "mine": f"sfm_laserscale_glog_{os.getpid()}_x2",
-        "parent": f"sfm_laserscale_glog_{os.getppid()}_x3",
-        "other": "unrelated_123_x4",
-    }
+    names = {"killed": "sfm_laserscale_glog_5_x1", "live_here": "sfm_laserscale_glog_1_x2",
+             "live_elsewhere": "sfm_laserscale_glog_999999_x3", "other": "unrelated_123_x4"}
     for name in names.values():
         (tmp_path / name).mkdir()
         (tmp_path / name / "pycolmap-1.log").write_text("I... msg\n")
-    _remove_stale_glog_dirs(tmp_path)
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
-        names[k] for k in ("mine", "parent", "other")
-    )
+    (tmp_path / names["killed"] / _GLOG_LOCK).write_text("5")  # its holder is gone
+    mine = hold(tmp_path / names["live_here"] / _GLOG_LOCK)
+    code = ("import sys, time; from pathlib import Path; from sfm_laserscale.io.locks import hold;"
+            f" h = hold(Path({str(tmp_path / names['live_elsewhere'] / _GLOG_LOCK)!r}));"
+            " print('held', flush=True); time.sleep(60)")
+    other = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert other.stdout is not None and other.stdout.readline().strip() == "held"
+        _remove_stale_glog_dirs(tmp_path)
+        assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+            names[k] for k in ("live_here", "live_elsewhere", "other"))
+    finally:
+        other.kill()
+        other.wait()
+        mine.close()
+    _remove_stale_glog_dirs(tmp_path)  # both holders gone now
+    assert [p.name for p in tmp_path.iterdir()] == [names["other"]]
