@@ -187,13 +187,19 @@ def scale(**kw: Any) -> int:
 )
 @click.option("--small", is_flag=True, help="A smaller, faster scene (as in the tests).")
 @click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--laser-color", type=click.Choice(["red", "green", "blue"]), default="red",
+              show_default=True, help="Colour of the four beams.")
+@click.option("--water", type=click.Choice(["clear", "green"]),
+              help="clear, or green coastal water with pale clutter on the floor "
+              "[green for green beams, clear otherwise].")
 @click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
 @common_options
 def demo(**kw: Any) -> int:
     """Complete synthetic run with no input data: render, SfM, laser images, then `scale`."""
     from sfm_laserscale.commands.demo import DemoOptions, run_demo
 
-    options = DemoOptions(small=kw["small"], seed=kw["seed"], progress=not kw["quiet"])
+    options = DemoOptions(small=kw["small"], seed=kw["seed"], progress=not kw["quiet"],
+                          laser_color=kw["laser_color"], water=kw["water"])
     result = run_demo(kw["out"], options, overwrite=kw["overwrite"])
     click.echo(result.summary)
     return EXIT_OK if result.success else EXIT_NO_SCALE

@@ -248,6 +248,8 @@ def test_generator_imports_nothing_from_the_rest_of_the_package() -> None:
     allowed = {"numpy", "scipy", "cv2", "math", "dataclasses", "collections", "typing",
                "__future__"}
     for path in PACKAGE.glob("*.py"):
+        if path.name == "survey.py":  # SfM and writers only: tests/test_underwater_survey.py
+            continue
         tree = ast.parse(path.read_text())
         for node in ast.walk(tree):
             if isinstance(node, ast.ImportFrom) and node.module:

@@ -19,11 +19,24 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class DemoOptions:
-    """``small`` is the test-sized scene; ``seed`` drives every random choice."""
+    """``small`` is the test-sized scene; ``seed`` drives every random choice.
+
+    ``laser_color`` (red | green | blue) is the colour of the beams; ``water`` (clear | green)
+    the water preset, None: green water for green beams, clear water otherwise.
+    """
 
     small: bool = False
     seed: int = 0
     progress: bool = True
+    laser_color: str = "red"
+    water: str | None = None
+
+    @property
+    def resolved_water(self) -> str:
+        """The water preset: ``water``, or the one that goes with the laser colour."""
+        if self.water is not None:
+            return self.water
+        return "green" if self.laser_color == "green" else "clear"
 
 
 @dataclass(frozen=True)
@@ -62,7 +75,8 @@ def run_demo(
     """Make the synthetic data in ``out/data`` and scale it into ``out/scale``."""
     t0 = time.perf_counter()
     check_output_dir(out, overwrite)
-    data_opts = DemoDataOptions(small=options.small, seed=options.seed, progress=options.progress)
+    data_opts = DemoDataOptions(small=options.small, seed=options.seed, progress=options.progress,
+                                laser_color=options.laser_color, water=options.resolved_water)
     dataset = make_demo_dataset(out / "data", data_opts, overwrite=overwrite)
     inputs = scale_inputs_for(dataset)
     logger.info(

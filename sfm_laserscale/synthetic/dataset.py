@@ -20,7 +20,7 @@ by Umeyama between the true camera centres and the SfM camera centres, so the tr
 tool must find is ``s_true = 1 / model_from_world.scale`` metres per model unit.
 
 Laser rigs (``DemoDataOptions.rig``), origins at the four corners of a 0.234 m square around the
-lens (‖O‖ = 0.165 m), all red:
+lens (‖O‖ = 0.165 m), all of one colour (``DemoDataOptions.laser_color``: red, green or blue):
 
 - ``"rov"`` (default, like the paper's configuration C, a misaligned ROV scaler): L3 and L4 are
   2.2° and 2.8° off the optical axis in unrelated directions; L1 and L2 are *exactly parallel*
@@ -28,8 +28,16 @@ lens (‖O‖ = 0.165 m), all red:
   equidistant from both beams) and form the one ``[[pair]]`` (separation 0.234 m) for PCM.
 - ``"parallel"``: four beams parallel to the optical axis; pairs (L1, L2) and (L4, L3).
 
-Spots are painted (``spots.paint_spot``, sigma = focal · ``beam_sigma_m`` / depth) only where the
-beam's first hit projects inside the image and is not occluded from the camera. Rendering is
+Spots are painted (``spots.paint_spot``, sigma = focal · ``beam_sigma_m`` / depth, in the rig's
+colour, white clipped core) only where the beam's first hit projects inside the image and is not
+occluded from the camera.
+
+Water (``DemoDataOptions.water``): ``"clear"`` keeps ``options.render`` and ``options.scene`` as
+given; ``"green"`` (green coastal water, as for green-beam surveys) replaces the render's water
+colour and attenuation by :data:`GREEN_WATER_RGB` and :data:`GREEN_WATER_ATTENUATION` (red dies
+fast, green carries: a green-cyan cast and veiling light) and scatters pale clutter (shell hash,
+mineral speckle, 8-40 mm: 2-10 px in the images) over the seafloor texture
+(``SceneOptions.pale_patches_per_m2`` = :data:`GREEN_WATER_PALE_PATCHES_PER_M2`). Rendering is
 seeded and exact; COLMAP's multi-threaded mapping is not bit-reproducible (the true scale of two
 runs agrees to ~1e-7), but every file of one run is consistent with its own truth.json.
 """
@@ -75,6 +83,14 @@ F64 = NDArray[np.float64]
 
 #: Laser origins: corners of a square of side 2 × 0.117 m (‖O‖ = 0.1655 m), camera frame.
 _CORNER = 0.117
+#: Laser colours the demo paints (spots.LASER_RGB) and water presets it knows.
+LASER_COLORS = ("red", "green", "blue")
+WATERS = ("clear", "green")
+#: Green coastal water: veiling light (linear RGB, green-cyan) and attenuation per channel (1/m).
+GREEN_WATER_RGB: tuple[float, float, float] = (0.02, 0.20, 0.15)
+GREEN_WATER_ATTENUATION: tuple[float, float, float] = (0.45, 0.07, 0.12)
+#: Pale clutter density in green water (≈ 300 patches in a 2.8 × 2.1 m view).
+GREEN_WATER_PALE_PATCHES_PER_M2 = 50.0
 #: Files and folders that make_demo_dataset writes (removed first when overwriting).
 OUTPUTS = ("images", "laser_images", "database.db", "pairs.txt", "sparse", "mesh.ply",
            "rig.toml", "truth.json", "true_spots.csv")
@@ -90,7 +106,9 @@ class DemoDataOptions:
 
     ``small=True`` replaces image size, focal, image counts and the scene by a faster preset
     (640 × 480, 8 reference and 3 laser images, a 7 × 7 m scene with a 2048² texture).
-    ``seed`` seeds everything (it replaces ``scene.seed``).
+    ``seed`` seeds everything (it replaces ``scene.seed``). ``laser_color`` (red | green | blue)
+    is the colour of every beam (rig file and painted spots); ``water`` (clear | green) selects
+    the water preset (module docstring).
     """
 
     image_size: tuple[int, int] = (1024, 768)  # width, height (pixels)
@@ -104,6 +122,8 @@ class DemoDataOptions:
     laser_distance_m: tuple[float, float] = (1.8, 3.5)  # range along the optical axis
     laser_max_tilt_deg: float = 20.0
     rig: str = "rov"  # rov | parallel (see the module docstring)
+    laser_color: str = "red"  # red | green | blue
+    water: str = "clear"  # clear | green (green coastal water, pale clutter on the floor)
     beam_sigma_m: float = 0.005  # spot radius (Gaussian sigma) on the surface, metres
     spot_peak: float = 3.0  # linear peak of the spot core (> 1 saturates)
     noise_std: float = 0.004  # Gaussian sensor noise, linear units
@@ -189,12 +209,23 @@ class DemoDataset:
 
 
 def resolve_options(options: DemoDataOptions) -> DemoDataOptions:
-    """Apply the ``small`` preset (a no-op otherwise)."""
-    if not options.small:
-        return options
-    scene = replace(options.scene, size_m=(7.0, 7.0), texture_px=2048)
-    return replace(options, image_size=(640, 480), focal_px=900.0 * 640 / 1024, n_reference=8,
-                   n_laser=3, max_features=2000, scene=scene)
+    """Check the colour and water names, apply the ``small`` preset and the water preset
+    (a no-op for the defaults)."""
+    if options.laser_color not in LASER_COLORS:
+        raise InputError(f"unknown laser colour {options.laser_color!r} "
+                         f"(known: {', '.join(LASER_COLORS)})")
+    if options.water not in WATERS:
+        raise InputError(f"unknown water {options.water!r} (known: {', '.join(WATERS)})")
+    if options.small:
+        scene = replace(options.scene, size_m=(7.0, 7.0), texture_px=2048)
+        options = replace(options, image_size=(640, 480), focal_px=900.0 * 640 / 1024,
+                          n_reference=8, n_laser=3, max_features=2000, scene=scene)
+    if options.water == "green":
+        render = replace(options.render, water_rgb=GREEN_WATER_RGB,
+                         attenuation_per_m=GREEN_WATER_ATTENUATION)
+        scene = replace(options.scene, pale_patches_per_m2=GREEN_WATER_PALE_PATCHES_PER_M2)
+        options = replace(options, render=render, scene=scene)
+    return options
 
 
 def demo_camera(options: DemoDataOptions) -> Camera:
@@ -213,8 +244,8 @@ def _dir(tilt_deg: float, azimuth_deg: float) -> list[float]:
     return [float(x) for x in v]
 
 
-def make_rig(kind: str = "rov") -> Rig:
-    """The demo laser scaler (see the module docstring)."""
+def make_rig(kind: str = "rov", color: str = "red") -> Rig:
+    """The demo laser scaler (see the module docstring), every beam of ``color``."""
     c = _CORNER
     origins = {"L1": [-c, -c, 0.0], "L2": [c, -c, 0.0], "L3": [c, c, 0.0], "L4": [-c, c, 0.0]}
     if kind == "rov":
@@ -229,7 +260,7 @@ def make_rig(kind: str = "rov") -> Rig:
     else:
         raise InputError(f"unknown demo rig {kind!r} (known: rov, parallel)")
     lasers = tuple(Laser(name=k, origin=np.array(origins[k]), direction=np.array(dirs[k]),
-                         color="red") for k in origins)
+                         color=color) for k in origins)
     pairs = tuple(Pair(lasers=p, separation=_separation(origins[p[0]], origins[p[1]],
                                                         dirs[p[0]])) for p in pair_names)
     return Rig(name=name, lasers=lasers, pairs=pairs)
@@ -434,13 +465,16 @@ def run_sfm(images_dir: Path, image_names: list[str], database_path: Path, spars
             camera: Camera, pairs_path: Path | None,
             options: DemoDataOptions) -> tuple[pycolmap.Reconstruction, SfmStats,
                                                dict[str, float]]:
-    """SIFT + matching + incremental mapping (pycolmap, CPU, known PINHOLE camera held fixed).
+    """SIFT + matching + incremental mapping (pycolmap, CPU, the known camera held fixed).
+
+    The camera's model (PINHOLE for the demo, OPENCV for the underwater survey) and
+    parameters are given to COLMAP and not refined.
 
     ``pairs_path``: a COLMAP pair list ("name1 name2" lines) to match; None = exhaustive.
     """
     timings: dict[str, float] = {}
     reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = "PINHOLE"
+    reader.camera_model = camera.model
     reader.camera_params = ",".join(f"{p:.12g}" for p in camera.params)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.use_gpu = False
@@ -681,7 +715,7 @@ def make_demo_dataset(out_dir: Path, options: DemoDataOptions = DemoDataOptions(
     scene = make_scene(replace(options.scene, seed=options.seed))
     raycaster = SceneRaycaster(scene)
     timings["scene"] = time.perf_counter() - t0
-    camera, rig = demo_camera(options), make_rig(options.rig)
+    camera, rig = demo_camera(options), make_rig(options.rig, options.laser_color)
     ref_poses = reference_poses(options, rng)
     ref = _Views([f"ref_{k:03d}.png" for k in range(len(ref_poses))], ref_poses)
     las_poses = laser_poses(options, raycaster, ref_poses, rng)

@@ -40,6 +40,8 @@ PEBBLE_PALETTE: tuple[tuple[float, float, float], ...] = (
     (0.30, 0.42, 0.24),
 )
 ROCK_RGB = (0.24, 0.26, 0.27)
+#: Albedo range of pale clutter (near-white shell and mineral fragments).
+PALE_ALBEDO = (0.6, 0.9)
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,10 @@ class SceneOptions:
     n_boulders: int = 7
     texture_px: int = 4096  # texels along the longer side
     n_pebbles: int = 30000  # painted pebbles at texture_px = 4096 (scaled with texel count)
+    #: pale clutter (mineral speckle, shell hash): patches per square metre, 0 = none; drawn
+    #: from their own random stream, so the rest of the scene is the same with or without them
+    pale_patches_per_m2: float = 0.0
+    pale_patch_diameter_m: tuple[float, float] = (0.008, 0.04)  # log-uniform
     seed: int = 0
 
 
@@ -216,6 +222,36 @@ def _paint_speckles(rng: np.random.Generator, tex: F32, n: int) -> None:
     tex[rows, cols] *= rng.choice([0.3, 1.8], n)[:, None].astype(np.float32)
 
 
+def _paint_pale_patches(rng: np.random.Generator, tex: F32, options: SceneOptions) -> None:
+    """Scatter small pale patches (shell hash, mineral speckle) into the texture, in place.
+
+    ``options.pale_patches_per_m2`` patches over the scene, diameters log-uniform in
+    ``options.pale_patch_diameter_m``, elongated ellipses of a slightly warm or cool white
+    (albedo in ``PALE_ALBEDO``), placed to a quarter texel (cv2's fixed-point ``shift``); the
+    renderer's mip-mapping filters their edges.
+    """
+    sx, sy = options.size_m
+    n = int(round(options.pale_patches_per_m2 * sx * sy))
+    if n <= 0:
+        return
+    ht, wt = tex.shape[:2]
+    texels_per_m = wt / sx
+    lo, hi = np.log(options.pale_patch_diameter_m)
+    diam_px = np.exp(rng.uniform(lo, hi, n)) * texels_per_m
+    centres = rng.random((n, 2)) * [wt, ht]
+    aspect = rng.uniform(0.4, 1.0, n)
+    angles = rng.uniform(0.0, 180.0, n)
+    level = rng.uniform(*PALE_ALBEDO, n)
+    tint = rng.uniform(-0.05, 0.05, n)
+    sub = 4  # cv2 fixed-point shift of 2 bits: quarter-texel centres and axes
+    for i in range(n):
+        rgb = (level[i] * (1 + tint[i]), level[i], level[i] * (1 - tint[i]))
+        axes = (max(1, int(round(sub * diam_px[i] / 2))),
+                max(1, int(round(sub * aspect[i] * diam_px[i] / 2))))
+        centre = (int(round(sub * centres[i, 0])), int(round(sub * centres[i, 1])))
+        cv2.ellipse(tex, centre, axes, angles[i], 0, 360, rgb, -1, cv2.LINE_8, 2)
+
+
 def _sediment(rng: np.random.Generator, shape: tuple[int, int], n_cells: int) -> F32:
     """(H, W, 3) smooth blend of the sediment palette (patches from 0.25 m to a few metres)."""
     palette = np.asarray(SEDIMENT_PALETTE, dtype=np.float32)
@@ -261,6 +297,8 @@ def make_texture(rng: np.random.Generator, options: SceneOptions,
     np.clip(detail, -1.0, 1.0, out=detail)
     tex *= (1.0 + detail + 0.5 * detail * detail)[:, :, None]  # ≈ exp(detail), cheaper
     _paint_speckles(rng, tex, ht * wt // 60)
+    if options.pale_patches_per_m2 > 0:  # own stream: the draws above are unchanged
+        _paint_pale_patches(np.random.default_rng([options.seed, 0x9A1E]), tex, options)
     np.clip(tex, 0.01, 0.95, out=tex)
     return tex
 

@@ -5,8 +5,13 @@ older synthetic renderer (``synthetic.spots``/``render``/``scene``): it imports 
 scipy and OpenCV. Modules: :mod:`.optics` (camera model), :mod:`.spectra` (sensor and light
 spectra), :mod:`.water` (water types), :mod:`.surface` and :mod:`.texture` (the seafloor),
 :mod:`.seafloor` (lit scene, clutter, marine snow, hot spots), :mod:`.beams` (laser spots),
-:mod:`.sensor` (Bayer sensor, camera processing, JPEG) and :mod:`.conditions` (named
-benchmark conditions and :func:`~.conditions.render_frame`).
+:mod:`.sensor` (Bayer sensor, camera processing, JPEG), :mod:`.conditions` (named
+benchmark conditions and :func:`~.conditions.render_frame`) and :mod:`.views` (one seafloor
+fixed in a world frame, photographed from explicit poses).
+
+:mod:`.survey` (a multi-view survey data set for end-to-end runs of ``scale``) is the one
+module that imports from the rest of the package: pycolmap SfM and the writers of
+``synthetic.dataset``, never the stages under test.
 """
 
 from sfm_laserscale.synthetic.underwater.conditions import CONDITIONS, Frame, render_frame

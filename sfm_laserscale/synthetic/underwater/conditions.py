@@ -166,7 +166,7 @@ def _log_uniform(rng: np.random.Generator, lo_hi: Range) -> float:
     return float(math.exp(rng.uniform(math.log(lo_hi[0]), math.log(lo_hi[1]))))
 
 
-def _lamps(rng: np.random.Generator) -> tuple[Lamp, ...]:
+def vehicle_lamps(rng: np.random.Generator) -> tuple[Lamp, ...]:
     """Two broad-beam lamps 0.35-0.6 m left and right of the camera, slightly above it, aimed
     forward and 0-12° outwards (and 0-8° down); Gaussian cones of sigma 35-55°."""
     out = []
@@ -180,7 +180,9 @@ def _lamps(rng: np.random.Generator) -> tuple[Lamp, ...]:
     return tuple(out)
 
 
-def _sensor_settings(rng: np.random.Generator, cond: Condition) -> sensor.SensorSettings:
+def sensor_settings(rng: np.random.Generator, cond: Condition) -> sensor.SensorSettings:
+    """Camera settings of a frame of this condition (PSF, noise, white balance for the lamps,
+    colour matrix, JPEG quality, blur, glare, chromatic aberration, tone, sharpening)."""
     lamp = spectra.integrate_rgb(spectra.white_led_spectrum())
     gains = lamp[1] / lamp
     beta = rng.uniform(0.6, 1.0)
@@ -215,8 +217,8 @@ def _partial_awb(s: sensor.SensorSettings, radiance: F32, rng: np.random.Generat
     return sensor.SensorSettings(**{**s.__dict__, "wb_gains": tuple(float(g) for g in gains)})
 
 
-def _scene_forward_scatter(radiance: F32, wat: water.WaterType, distance_m: float,
-                           focal_px: float) -> float:
+def scene_forward_scatter(radiance: F32, wat: water.WaterType, distance_m: float,
+                          focal_px: float) -> float:
     """In place: spread the fraction 1 - exp(-b_s r) of the scene light by the halo kernel
     (the water's small-angle scattering on the way to the camera); returns the fraction."""
     frac = -math.expm1(-float(wat.small_angle_scattering_per_m(550.0)[0]) * distance_m)
@@ -243,10 +245,10 @@ def _ca_of_dominant(ca: tuple[tuple[float, float], tuple[float, float]],
     return float(np.hypot(*ca[0])) if dom == 0 else float(np.hypot(*ca[1])) if dom == 2 else 0.0
 
 
-def _spots(cond: Condition, cam: optics.CameraModel, lay: layout.Layout,
-           wat: water.WaterType, albedo_at: beams_mod.AlbedoFn,
-           settings: sensor.SensorSettings, rng: np.random.Generator
-           ) -> tuple[list[sensor.Crop], dict[str, dict[str, float]]]:
+def spot_crops(cond: Condition, cam: optics.CameraModel, lay: layout.Layout,
+               wat: water.WaterType, albedo_at: beams_mod.AlbedoFn,
+               settings: sensor.SensorSettings, rng: np.random.Generator
+               ) -> tuple[list[sensor.Crop], dict[str, dict[str, float]]]:
     """Every switched-on laser's spot and glow as light crops in exposed units (the optical
     PSF included), and per-spot metadata."""
     meta: dict[str, dict[str, float]] = {}
@@ -322,9 +324,9 @@ def _exposed_scene(work: _Work, rng: np.random.Generator
     look = texture.random_look(rng)
     bank = texture.make_noise_bank(rng)
     discs = work.discs
-    scene = render_seafloor(cam, lay.seafloor, look, bank, _lamps(rng), hot, work.wat,
+    scene = render_seafloor(cam, lay.seafloor, look, bank, vehicle_lamps(rng), hot, work.wat,
                             lambda alb: particles.paint_albedo_patches(alb, discs))
-    settings = _partial_awb(_sensor_settings(rng, cond), scene.radiance, rng)
+    settings = _partial_awb(sensor_settings(rng, cond), scene.radiance, rng)
     target = float(rng.uniform(*cond.exposure_green))
     exposure = sensor.auto_exposure(scene.radiance, settings, target)
     radiance = scene.radiance
@@ -336,7 +338,7 @@ def _exposed_scene(work: _Work, rng: np.random.Generator
         base = float(np.median(radiance[::4, ::4, 1]))
         radiance += scene.hotspot * np.float32(
             exposure * max(hot_peak - base, 0.1) / max(lobe, 1e-30))
-    fs = _scene_forward_scatter(radiance, work.wat, lay.seafloor.distance_m, cam.focal_px)
+    fs = scene_forward_scatter(radiance, work.wat, lay.seafloor.distance_m, cam.focal_px)
     snow = compose.snow_discs(rng, work.ctx, work.wat) if cond.marine_snow else []
     glints = compose.glint_discs(rng, work.ctx, work.wat) if cond.glints else []
     lit = (compose.laser_lit_discs(rng, work.ctx)
@@ -386,7 +388,7 @@ def render_frame(condition_name: str, width: int, height: int,
     """
     work = _plan(condition_name, width, height, rng)
     radiance, settings, albedo_at = _exposed_scene(work, rng)
-    crops, spot_meta = _spots(work.cond, work.cam, work.lay, work.wat, albedo_at, settings, rng)
+    crops, spot_meta = spot_crops(work.cond, work.cam, work.lay, work.wat, albedo_at, settings, rng)
     truth = _visibility(work, radiance, spot_meta)
     image = sensor.capture(radiance, settings, rng, crops)
     del radiance

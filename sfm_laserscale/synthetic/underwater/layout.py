@@ -90,6 +90,18 @@ def _beam(name: str, origin: F64, direction: F64, wavelength_nm: float,
                 divergence_rad=float(rng.uniform(0.3e-3, 1.0e-3)))
 
 
+def random_beams(rng: np.random.Generator, wavelength_nm: float,
+                 off_axis_deg: tuple[float, float] = (0.5, 3.0)) -> tuple[Beam, ...]:
+    """A rig of four beams as :func:`sample_layout` draws it (origins, directions off the
+    optical axis by ``off_axis_deg`` at random azimuths, waists, divergences), without a
+    seafloor: for a rig that stays the same over many pictures (a survey)."""
+    origins = _origins(rng)
+    dirs = [_direction(math.radians(rng.uniform(*off_axis_deg)), rng.uniform(-math.pi, math.pi))
+            for _ in origins]
+    return tuple(_beam(n, o, d, wavelength_nm, rng)
+                 for n, o, d in zip(LASER_NAMES, origins, dirs, strict=True))
+
+
 def _border_targets(rng: np.random.Generator, cam: CameraModel) -> list[F64]:
     """One pixel per edge (left, right, top, bottom), 2-12 px inside it, 20-80 % along it."""
     m = rng.uniform(2.0, 12.0, 4)
@@ -163,26 +175,29 @@ def sample_layout(rng: np.random.Generator, cam: CameraModel, spec: GeometrySpec
     raise RuntimeError(f"no layout satisfying {spec} in {MAX_TRIES} tries")
 
 
-def _perturbed(beam: Beam, rng: np.random.Generator) -> tuple[F64, F64]:
-    """(origin, direction) with the calibration error of the rig file."""
-    origin = beam.origin_m + np.array([*rng.normal(0.0, SIGMA_ORIGIN_M, 2), 0.0])
+def _perturbed(beam: Beam, rng: np.random.Generator, error_scale: float = 1.0
+               ) -> tuple[F64, F64]:
+    """(origin, direction) with the calibration error of the rig file (its draws times
+    ``error_scale``: 1 the calibration error of the module docstring, 0 the true beam)."""
+    origin = beam.origin_m + error_scale * np.array([*rng.normal(0.0, SIGMA_ORIGIN_M, 2), 0.0])
     d = beam.direction
     helper = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     u = np.cross(d, helper)
     u /= np.linalg.norm(u)
     v = np.cross(d, u)
-    e = rng.normal(0.0, SIGMA_DIRECTION_RAD, 2)
+    e = error_scale * rng.normal(0.0, SIGMA_DIRECTION_RAD, 2)
     d2 = d + e[0] * u + e[1] * v
     return origin, d2 / np.linalg.norm(d2)
 
 
 def rig_toml(beams: tuple[Beam, ...], color: str, rng: np.random.Generator,
-             name: str = "underwater benchmark rig") -> str:
-    """The rig as given to the detector: true beams plus calibration error, in the rig-file
-    TOML format (colour name per laser; the wavelength goes in the frame metadata)."""
+             name: str = "underwater benchmark rig", error_scale: float = 1.0) -> str:
+    """The rig as given to the detector: true beams plus calibration error (scaled by
+    ``error_scale``; the sigmas written are always the module's), in the rig-file TOML format
+    (colour name per laser; the wavelength goes in the frame metadata)."""
     lines = [f'name = "{name}"']
     for beam in beams:
-        origin, direction = _perturbed(beam, rng)
+        origin, direction = _perturbed(beam, rng, error_scale)
         lines += ["", "[[laser]]", f'name = "{beam.name}"',
                   "origin = [" + ", ".join(repr(float(v)) for v in origin) + "]",
                   "direction = [" + ", ".join(repr(float(v)) for v in direction) + "]",

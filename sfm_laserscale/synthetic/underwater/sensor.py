@@ -222,16 +222,27 @@ def develop(lin_rgb: F32, s: SensorSettings) -> F32:
     return np.asarray(_transfer_lut(s.tone)[idx16], np.float32).reshape(shape)
 
 
-def jpeg_roundtrip(rgb8: U8, quality: int, chroma_420: bool = True) -> U8:
-    """Encode as JPEG (4:2:0 or 4:4:4 chroma) and decode back, RGB uint8."""
+def encode_jpeg(rgb8: U8, quality: int, chroma_420: bool = True) -> bytes:
+    """The JPEG file (4:2:0 or 4:4:4 chroma) of an RGB uint8 image, as bytes."""
     params = [cv2.IMWRITE_JPEG_QUALITY, int(quality), cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
               cv2.IMWRITE_JPEG_SAMPLING_FACTOR_420 if chroma_420
               else cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444]
     ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb8, cv2.COLOR_RGB2BGR), params)
     if not ok:
         raise RuntimeError("JPEG encoding failed")
+    return bytes(buf.tobytes())
+
+
+def decode_jpeg(data: bytes) -> U8:
+    """RGB uint8 pixels of a JPEG file's bytes."""
+    buf = np.frombuffer(data, np.uint8)
     return np.asarray(cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB),
                       np.uint8)
+
+
+def jpeg_roundtrip(rgb8: U8, quality: int, chroma_420: bool = True) -> U8:
+    """Encode as JPEG (4:2:0 or 4:4:4 chroma) and decode back, RGB uint8."""
+    return decode_jpeg(encode_jpeg(rgb8, quality, chroma_420))
 
 
 def capture(radiance: F32, s: SensorSettings, rng: np.random.Generator,

@@ -2,8 +2,10 @@
 
 A surface point is ``X = anchor + s·e1 + t·e2 + h(s, t)·n`` (metres, camera frame: x right,
 y down, z forward) where ``n`` is the unit normal of the mean plane pointing towards the
-camera, ``anchor`` = (0, 0, D) its point on the optical axis, (e1, e2) an orthonormal basis of
-the plane and ``h`` a sum of a few long-wavelength sinusoids (the relief). (s, t) are the
+camera, ``anchor`` a point of the mean plane (for single frames (0, 0, D), its point on the
+optical axis; a seafloor fixed in a world frame and seen from several poses keeps its world
+origin as anchor, :mod:`.views`), (e1, e2) an orthonormal basis of the plane and ``h`` a sum
+of a few long-wavelength sinusoids (the relief). (s, t) are the
 surface coordinates used by the albedo texture. Rays from the camera centre are intersected
 with the height field by Newton's method on ``g(λ) = n·(λ r - anchor) - h(s(λ), t(λ))``,
 started at the mean plane; the same code serves the whole-frame geometry and the laser beams
@@ -39,7 +41,9 @@ class Seafloor:
     @property
     def distance_m(self) -> float:
         """Distance from the camera centre to the mean plane along the optical axis (m)."""
-        return float(self.anchor_m[2])
+        if self.anchor_m[0] == 0.0 and self.anchor_m[1] == 0.0:  # anchor on the axis
+            return float(self.anchor_m[2])
+        return float(self.normal @ self.anchor_m / self.normal[2])
 
 
 def height_m(sf: Seafloor, s_m: F64, t_m: F64) -> tuple[F64, F64, F64]:
