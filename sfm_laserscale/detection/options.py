@@ -64,13 +64,13 @@ class DetectionOptions:
     max_spot_radius_px: float | None = None
     min_snr: float = 5.0
     max_annulus_ratio: float = 0.5
-    min_clutter_ratio: float = 2.0
+    min_clutter_ratio: float = 1.5
     saturation_level: float = 250.0 / 255.0
     max_candidates: int = 100
     input_gamma: float = 2.2
     response: str = "background"
     snr_half: float = 6.0
-    clutter_half: float = 2.0
+    clutter_half: float = 1.5
     colour_tau: float = 0.07
     colour_evidence: bool = True
     min_score: float = 0.25
