@@ -118,13 +118,16 @@ _path = click.Path(path_type=Path)
 @main.command(cls=GreedyCommand)
 @click.option(
     "--model",
-    required=True,
     type=_path,
     help="COLMAP sparse model folder or OpenMVG sfm_data.json.",
 )
 @click.option(
-    "--mesh", required=True, type=_path, help="Dense mesh in the model's frame (PLY, OBJ, ...)."
+    "--mesh", type=_path, help="Dense mesh in the model's frame (PLY, OBJ, ...)."
 )
+@click.option("--colmap-workspace", type=_path, help="A COLMAP workspace: database.db, "
+              "sparse/<n>/, images/, dense/<n>/meshed-*.ply (explicit paths override).")
+@click.option("--openmvg-project", type=_path, help="An OpenMVG + OpenMVS project: sfm_data, "
+              "matches/, the most refined OpenMVS mesh (explicit paths override).")
 @click.option(
     "--laser-images",
     required=True,
@@ -157,24 +160,23 @@ _path = click.Path(path_type=Path)
     "re-extracted with --images) [one per free core, within half the available memory; "
     "0: none].",
 )
+@click.option("--reuse-model-poses", is_flag=True, help="A laser image that is also a model "
+              "image takes the model's pose instead of being registered.")
 @click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
 @common_options
 def scale(**kw: Any) -> int:
     """Estimate the model's metric scale and write the rescaled model, mesh and report."""
-    from sfm_laserscale.commands.scale import ScaleInputs, ScaleOptions, run
+    from sfm_laserscale.commands.scale import ScaleOptions, run
+    from sfm_laserscale.pipeline_folders import GivenInputs, resolve_scale_inputs
     from sfm_laserscale.registration.sift_workers import SiftWorkerOptions
 
-    inputs = ScaleInputs(
-        model=kw["model"],
-        mesh=kw["mesh"],
-        laser_images=tuple(kw["laser_images"]),
-        rig=kw["rig"],
-        images=kw["images"],
-        database=kw["database"],
-        features=kw["features"],
-        spots=kw["spots"],
-    )
+    inputs = resolve_scale_inputs(GivenInputs(
+        laser_images=tuple(kw["laser_images"]), rig=kw["rig"], model=kw["model"],
+        mesh=kw["mesh"], images=kw["images"], database=kw["database"],
+        features=kw["features"], spots=kw["spots"], colmap_workspace=kw["colmap_workspace"],
+        openmvg_project=kw["openmvg_project"]))
     options = ScaleOptions(method=kw["method"], seed=kw["seed"], progress=not kw["quiet"],
+                           reuse_model_poses=kw["reuse_model_poses"],
                            sift_workers=SiftWorkerOptions(workers=kw["workers"]))
     result = run(inputs, kw["out"], options, overwrite=kw["overwrite"])
     click.echo(result.summary)
