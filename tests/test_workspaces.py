@@ -85,8 +85,9 @@ def test_colmap_workspace_scales_with_one_command_and_is_left_byte_identical(
     before = tree_digest(ws)
     out = tmp_path / "out"
     res = CliRunner().invoke(cli_main, [
-        "scale", "--colmap-workspace", str(ws), "--laser-images", str(small_dataset.laser_images_dir),
-        "--rig", str(small_dataset.rig_path), "--out", str(out), "--quiet"])
+        "scale", "--colmap-workspace", str(ws), "--laser-images",
+        str(small_dataset.laser_images_dir), "--rig", str(small_dataset.rig_path), "--out",
+        str(out), "--quiet"])
     assert res.exit_code == 0, res.output
     assert tree_digest(ws) == before, "the workspace must be left byte-identical"
     report = json.loads((out / "report.json").read_text())
@@ -204,8 +205,8 @@ def test_openmvg_project_scales_with_one_command_and_is_left_byte_identical(
     before = tree_digest(proj)
     out = tmp_path / "out"
     res = CliRunner().invoke(cli_main, [
-        "scale", "--openmvg-project", str(proj), "--laser-images", str(laser_dir), "--rig", str(rig),
-        "--spots", str(spots), "--method", "fcm", "--out", str(out), "--quiet"])
+        "scale", "--openmvg-project", str(proj), "--laser-images", str(laser_dir), "--rig",
+        str(rig), "--spots", str(spots), "--method", "fcm", "--out", str(out), "--quiet"])
     assert res.exit_code == 0, res.output
     assert tree_digest(proj) == before, "the project must be left byte-identical"
     report = json.loads((out / "report.json").read_text())

@@ -80,17 +80,20 @@ def _numbered(folder: Path) -> list[Path]:
                   key=lambda p: int(p.name))
 
 
-def _choose_sparse(sparse: Path) -> tuple[Path | None, list[str]]:
-    """The model under ``sparse`` with the most registered images (ties: the lowest number)."""
+def choose_sparse_model(sparse: Path) -> tuple[Path | None, int, str]:
+    """The model under ``sparse`` with the most registered images (ties: the lowest number),
+    its count and one line saying why; ``sparse`` itself when it holds a model."""
     if _is_colmap_model(sparse):
-        return sparse, [f"model: {sparse} (the only model)"]
+        n = registered_image_count(sparse)
+        return sparse, n, f"model: {sparse} ({n} registered images, the only model)"
     counts = [(registered_image_count(p), p) for p in _numbered(sparse) if _is_colmap_model(p)]
     if not counts:
-        return None, []
+        return None, 0, ""
     best = max(counts, key=lambda c: (c[0], -int(c[1].name)))
     others = ", ".join(f"{p.name}: {n}" for n, p in counts if p != best[1])
     line = f"model: {best[1]} ({best[0]} registered images"
-    return best[1], [line + (f"; the others: {others})" if others else ", the only model)")]
+    return best[1], best[0], line + (f"; the others: {others})" if others else
+                                     ", the only model)")
 
 
 def _colmap_mesh(root: Path, model: Path | None) -> tuple[Path | None, tuple[Path, ...]]:
@@ -106,7 +109,8 @@ def find_colmap_workspace(root: Path) -> FoundInputs:
     """The inputs in a COLMAP workspace folder (InputError when it is not a folder)."""
     if not root.is_dir():
         raise InputError("COLMAP workspace not found (expected a folder)", root)
-    model, choices = _choose_sparse(root / "sparse")
+    model, _, why = choose_sparse_model(root / "sparse")
+    choices = [why] if model is not None else []
     mesh, mesh_looked = _colmap_mesh(root, model)
     if mesh is not None:
         choices.append(f"mesh: {mesh}")
