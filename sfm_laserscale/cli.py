@@ -485,5 +485,30 @@ def openmvg(**kw: Any) -> int:
     return EXIT_OK if result.scale.success else EXIT_NO_SCALE
 
 
+@main.command()
+@click.argument("manifest", type=_path)
+@click.option("--out", required=True, type=_path, help="Output folder: DIR/<name>/ per model, "
+              "DIR/summary.csv, DIR/summary.html.")
+@click.option("--jobs", type=click.IntRange(min=1), help="Models at once, on a local Dask "
+              "cluster of processes [one per available core]; 1: in this process.")
+@click.option("--scheduler", help="Run on an existing Dask cluster (tcp://host:8786); its "
+              "workers need the package and the paths.")
+@click.option("--method", type=click.Choice(["fcm", "pcm", "all"]), default="all",
+              show_default=True, help="For rows without a method.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--overwrite", is_flag=True, help="Redo models whose inputs and options are "
+              "unchanged (skipped otherwise).")
+@common_options
+def batch(**kw: Any) -> int:
+    """Scale every model of a manifest (CSV) on Dask; one failed model never stops the others."""
+    from sfm_laserscale.commands.batch import BatchInputs, BatchOptions, run
+
+    options = BatchOptions(jobs=kw["jobs"], scheduler=kw["scheduler"], method=kw["method"],
+                           seed=kw["seed"], progress=not kw["quiet"])
+    result = run(BatchInputs(kw["manifest"]), kw["out"], options, overwrite=kw["overwrite"])
+    click.echo(result.summary)
+    return EXIT_OK if result.all_scaled else EXIT_NO_SCALE
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()
