@@ -49,8 +49,9 @@ def _fmt(x: float | None) -> str:
     return "" if x is None or not math.isfinite(x) else f"{x:.6g}"
 
 
-def _bar(o: JobOutcome, width: float = 160.0) -> tuple[float, float] | None:
-    """x of the interval's ends on a ±_AXIS_PCT % axis centred on the scale (pixels)."""
+def _bar(o: JobOutcome, width: float = 160.0) -> tuple[float, float, str] | None:
+    """x of the interval's ends on a ±_AXIS_PCT % axis centred on the scale (pixels), and its
+    half-width in % of the scale as text."""
     scale = o.scale
     if scale is None or o.ci95_low is None or o.ci95_high is None or not scale:
         return None
@@ -58,7 +59,8 @@ def _bar(o: JobOutcome, width: float = 160.0) -> tuple[float, float] | None:
 
     def x(v: float) -> float:
         return round(min(width, max(0.0, half + half * (v / scale - 1) * 100 / _AXIS_PCT)), 1)
-    return x(o.ci95_low), x(o.ci95_high)
+    pct = 100 * (o.ci95_high - o.ci95_low) / 2 / scale
+    return x(o.ci95_low), x(o.ci95_high), f"±{pct:.2g} %"
 
 
 def summary_html(outcomes: Sequence[JobOutcome], manifest: Path) -> str:
