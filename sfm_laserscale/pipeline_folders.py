@@ -91,6 +91,19 @@ def _descriptor_sources(given: GivenInputs, found: FoundInputs | None
                      found.root)
 
 
+def _choices(given: GivenInputs, found: FoundInputs, sources: dict[str, Path | None]
+             ) -> list[str]:
+    """One line per input of the folder: the finder's choices not overridden, the descriptor
+    source used, and each explicit path that overrides the folder."""
+    overridden = {k for k in ("model", "mesh", "database", "images", "features")
+                  if getattr(given, k) is not None}
+    lines = [c for c in found.choices if c.split(":", 1)[0] not in overridden]
+    lines += [f"{k}: {p}" for k, p in sources.items() if p is not None and k not in overridden]
+    lines += [f"{k}: {getattr(given, k)} (given; overrides the {found.kind})"
+              for k in sorted(overridden)]
+    return lines
+
+
 def resolve_scale_inputs(given: GivenInputs) -> ScaleInputs:
     """The paths ``scale`` uses: explicit ones first, then what the pipeline folder holds."""
     found = _found(given)
@@ -98,19 +111,8 @@ def resolve_scale_inputs(given: GivenInputs) -> ScaleInputs:
     mesh = found.mesh if given.mesh is None and found is not None else None
     mesh = mesh or _mesh(given, found, model)
     database, images, features = _descriptor_sources(given, found)
-    choices: list[str] = []
-    if found is not None:
-        used = {"model": model, "mesh": mesh, "database": database, "images": images,
-                "features": features}
-        for key, path in used.items():
-            given_path = getattr(given, key)
-            if given_path is not None:
-                choices.append(f"{key}: {given_path} (given; overrides the {found.kind})")
-            elif path is not None and key not in ("model", "mesh"):
-                choices.append(f"{key}: {path}")
-        choices = [c for c in found.choices
-                   if c.split(":", 1)[0] not in {k for k, v in vars(given).items()
-                                                 if v is not None}] + choices
+    choices = [] if found is None else _choices(given, found, {
+        "database": database, "images": images, "features": features})
     model_images = images or given.images or (found.images if found is not None else None)
     return ScaleInputs(model=model, mesh=mesh, laser_images=given.laser_images, rig=given.rig,
                        images=images, database=database, features=features, spots=given.spots,

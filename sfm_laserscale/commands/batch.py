@@ -18,7 +18,6 @@ from sfm_laserscale.batch.execute import run_jobs
 from sfm_laserscale.batch.job import JobOutcome, ModelJob
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.manifest import read_manifest
-from sfm_laserscale.io.outputs import clean_stale_staging
 from sfm_laserscale.provenance import progress_bar
 from sfm_laserscale.report.batch_summary import write_summary
 from sfm_laserscale.resources import available_cpus
@@ -76,10 +75,11 @@ def run(inputs: BatchInputs, out_dir: Path, options: BatchOptions = BatchOptions
         raise InputError(f"--jobs must be at least 1, got {jobs_n}")
     out_dir = out_dir.resolve()
     _prepare(out_dir)
+    # a model killed mid-run left no report.json, only a staging folder that its next scale
+    # run removes (io/outputs.py): it is redone
     jobs = [ModelJob(row=r, out_dir=out_dir / r.name, method=r.method or options.method,
                      seed=options.seed, overwrite=overwrite) for r in rows]
-    for job in jobs:  # staging folders of killed runs: theirs is redone
-        clean_stale_staging(job.out_dir)
+    jobs_n = min(jobs_n, len(jobs))  # no idle worker processes
     where = options.scheduler or (f"{jobs_n} local worker processes" if jobs_n > 1
                                   else "this process")
     logger.info("batch: %d models from %s on %s", len(jobs), manifest, where)
