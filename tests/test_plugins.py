@@ -98,20 +98,35 @@ def test_colmap_command_pycolmap_backend(small_dataset: Any, tmp_path: Path) -> 
 
 
 @pytest.mark.skipif(COLMAP is None, reason="colmap CLI not installed (apt-get install colmap)")
-def test_colmap_plugin_script_with_the_colmap_cli_backend(small_dataset: Any,
-                                                         tmp_path: Path) -> None:
-    """plugins/colmap/colmap_laserscale.py runs ``sfm-laserscale colmap``; COLMAP 3.8's own
-    command line does the SfM (each step's threads from --workers)."""
-    args = [*_plugin_args(small_dataset, tmp_path / "run", "colmap")[1:], "--workers", "1"]
-    proc = subprocess.run([str(REPO / ".venv" / "bin" / "python"), str(PLUGIN), *args],
-                          capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    assert "SfM (colmap): 8/8 images" in proc.stdout
+def test_colmap_command_with_the_colmap_cli_backend(small_dataset: Any, tmp_path: Path) -> None:
+    """COLMAP 3.8's own command line does the SfM (each step's threads from --workers)."""
+    args = [*_plugin_args(small_dataset, tmp_path / "run", "colmap"), "--workers", "1"]
+    res = CliRunner().invoke(cli_main, args)
+    assert res.exit_code == 0, res.output
+    assert "SfM (colmap): 8/8 images" in res.output
     log = (tmp_path / "run" / "sfm" / "colmap.log").read_text()
     for step in ("feature_extractor", "matches_importer", "mapper", "use_gpu 0",
                  "--SiftExtraction.num_threads 2"):
         assert step in log
     _check_plugin_run(tmp_path / "run", small_dataset, "colmap")
+
+
+def test_the_colmap_plugin_script_runs_the_colmap_command(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """plugins/colmap/colmap_laserscale.py hands its arguments to ``sfm-laserscale colmap`` and
+    returns its exit status (here 2: the source images folder does not exist)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("colmap_laserscale", PLUGIN)
+    assert spec is not None and spec.loader is not None
+    plugin = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(plugin)
+    (tmp_path / "rig.toml").write_text("")
+    code = plugin.main(["--images", str(tmp_path / "nope"), "--laser-images", str(tmp_path),
+                        "--rig", str(tmp_path / "rig.toml"), "--out", str(tmp_path / "out")])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "sfm-laserscale: error:" in err and "source images folder not found" in err
 
 
 def test_laser_images_are_held_out_by_name_and_by_content(small_dataset: Any,
