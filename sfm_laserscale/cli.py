@@ -3,7 +3,8 @@ command's ``run`` (:mod:`sfm_laserscale.commands`).
 
 Exit status: 0 success; 1 the run finished but no scale could be estimated;
 2 bad usage or bad input (one line on stderr, no traceback without --debug);
-3 an internal error (a bug: please report it with the --debug traceback).
+3 an internal error (a bug: please report it with the --debug traceback); 4 an external tool of a
+pipeline command (``colmap``, ``openmvg``) failed: the line names the step.
 """
 
 from __future__ import annotations
@@ -18,11 +19,11 @@ from typing import Any
 import click
 
 from sfm_laserscale import __version__
-from sfm_laserscale.errors import InputError
+from sfm_laserscale.errors import InputError, ToolFailedError
 
 logger = logging.getLogger("sfm_laserscale")
 
-EXIT_OK, EXIT_NO_SCALE, EXIT_BAD_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
+EXIT_OK, EXIT_NO_SCALE, EXIT_BAD_INPUT, EXIT_INTERNAL, EXIT_TOOL = 0, 1, 2, 3, 4
 
 
 class GreedyCommand(click.Command):
@@ -87,6 +88,11 @@ def common_options(func: Callable[..., int]) -> Callable[..., None]:
                 raise
             click.echo(f"sfm-laserscale: error: {exc}", err=True)
             ctx.exit(EXIT_BAD_INPUT)
+        except ToolFailedError as exc:  # an external tool of a pipeline failed at a step
+            if debug:
+                raise
+            click.echo(f"sfm-laserscale: tool failed: {exc}", err=True)
+            ctx.exit(EXIT_TOOL)
         except (KeyboardInterrupt, click.exceptions.Exit, click.ClickException):
             raise
         except Exception as exc:
@@ -118,13 +124,16 @@ _path = click.Path(path_type=Path)
 @main.command(cls=GreedyCommand)
 @click.option(
     "--model",
-    required=True,
     type=_path,
     help="COLMAP sparse model folder or OpenMVG sfm_data.json.",
 )
 @click.option(
-    "--mesh", required=True, type=_path, help="Dense mesh in the model's frame (PLY, OBJ, ...)."
+    "--mesh", type=_path, help="Dense mesh in the model's frame (PLY, OBJ, ...)."
 )
+@click.option("--colmap-workspace", type=_path, help="A COLMAP workspace: database.db, "
+              "sparse/<n>/, images/, dense/<n>/meshed-*.ply (explicit paths override).")
+@click.option("--openmvg-project", type=_path, help="An OpenMVG + OpenMVS project: sfm_data, "
+              "matches/, the most refined OpenMVS mesh (explicit paths override).")
 @click.option(
     "--laser-images",
     required=True,
@@ -157,24 +166,23 @@ _path = click.Path(path_type=Path)
     "re-extracted with --images) [one per free core, within half the available memory; "
     "0: none].",
 )
+@click.option("--reuse-model-poses", is_flag=True, help="A laser image that is also a model "
+              "image takes the model's pose instead of being registered.")
 @click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
 @common_options
 def scale(**kw: Any) -> int:
     """Estimate the model's metric scale and write the rescaled model, mesh and report."""
-    from sfm_laserscale.commands.scale import ScaleInputs, ScaleOptions, run
+    from sfm_laserscale.commands.scale import ScaleOptions, run
+    from sfm_laserscale.pipeline_folders import GivenInputs, resolve_scale_inputs
     from sfm_laserscale.registration.sift_workers import SiftWorkerOptions
 
-    inputs = ScaleInputs(
-        model=kw["model"],
-        mesh=kw["mesh"],
-        laser_images=tuple(kw["laser_images"]),
-        rig=kw["rig"],
-        images=kw["images"],
-        database=kw["database"],
-        features=kw["features"],
-        spots=kw["spots"],
-    )
+    inputs = resolve_scale_inputs(GivenInputs(
+        laser_images=tuple(kw["laser_images"]), rig=kw["rig"], model=kw["model"],
+        mesh=kw["mesh"], images=kw["images"], database=kw["database"],
+        features=kw["features"], spots=kw["spots"], colmap_workspace=kw["colmap_workspace"],
+        openmvg_project=kw["openmvg_project"]))
     options = ScaleOptions(method=kw["method"], seed=kw["seed"], progress=not kw["quiet"],
+                           reuse_model_poses=kw["reuse_model_poses"],
                            sift_workers=SiftWorkerOptions(workers=kw["workers"]))
     result = run(inputs, kw["out"], options, overwrite=kw["overwrite"])
     click.echo(result.summary)
@@ -219,6 +227,30 @@ def apply(**kw: Any) -> int:
 
     result = run(ApplyInputs(model=kw["model"], mesh=kw["mesh"]), kw["out"],
                  ApplyOptions(scale=kw["scale_value"]), overwrite=kw["overwrite"])
+    click.echo(result.summary)
+    return EXIT_OK
+
+
+@main.command()
+@click.option("--model", required=True, type=_path,
+              help="COLMAP sparse model folder or OpenMVG sfm_data.json.")
+@click.option("--out", required=True, type=_path, help="The mesh to write (.ply).")
+@click.option("--method", type=click.Choice(["delaunay25d", "poisson"]), default="delaunay25d",
+              show_default=True, help="delaunay25d: a height field seen from the cameras "
+              "(surveys); poisson: Open3D's screened Poisson surface.")
+@click.option("--min-track-length", type=click.IntRange(min=1), default=3, show_default=True,
+              help="Use only points seen by at least this many images.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
+@common_options
+def mesh(**kw: Any) -> int:
+    """A coarse surface from the sparse model when there is no dense mesh (for scale --mesh);
+    writes what it interpolates beside it (<out>.json)."""
+    from sfm_laserscale.commands.mesh import MeshInputs, MeshOptions, run
+    from sfm_laserscale.meshing import CoarseMeshOptions
+
+    options = MeshOptions(CoarseMeshOptions(method=kw["method"],
+                                            min_track_length=kw["min_track_length"]))
+    result = run(MeshInputs(kw["model"]), kw["out"], options, overwrite=kw["overwrite"])
     click.echo(result.summary)
     return EXIT_OK
 
@@ -352,6 +384,136 @@ def simulate(**kw: Any) -> int:
                  overwrite=kw["overwrite"])
     click.echo(result.summary)
     return EXIT_OK if len(result.collected.table) else EXIT_NO_SCALE
+
+
+_WORKERS_HELP = ("SIFT worker processes of scale; the pipeline's tools get workers + 1 threads "
+                 "[scale's default; tools: every core].")
+
+
+class _PipelineCommand(GreedyCommand):
+    greedy = ("--laser-images",)
+
+
+@main.command(cls=_PipelineCommand)
+@click.option("--images", required=True, type=_path,
+              help="The source images (laser images among them are held out of SfM).")
+@click.option("--laser-images", required=True, multiple=True, type=_path,
+              help="Laser image files and/or folders.")
+@click.option("--rig", required=True, type=_path, help="Laser rig TOML file.")
+@click.option("--out", required=True, type=_path, help="Output folder (created).")
+@click.option("--mesh", type=_path, help="A mesh in the frame of the model built here (rare).")
+@click.option("--pairs", type=_path, help="Image pairs to match, 'name1 name2' per line.")
+@click.option("--spots", type=_path, help="CSV image,laser,x,y replacing detection.")
+@click.option("--backend", type=click.Choice(["auto", "colmap", "pycolmap"]), default="auto",
+              show_default=True, help="auto: COLMAP's command line when found, else pycolmap.")
+@click.option("--colmap", "colmap_exe", default="colmap", show_default=True,
+              help="The COLMAP executable.")
+@click.option("--camera-model", default="SIMPLE_RADIAL", show_default=True)
+@click.option("--camera-params", help="Known intrinsics, comma separated (held fixed).")
+@click.option("--max-features", type=int, default=8192, show_default=True)
+@click.option("--sift-first-octave", type=int, default=-1, show_default=True)
+@click.option("--mesh-method", type=click.Choice(["delaunay25d", "poisson"]),
+              default="delaunay25d", show_default=True)
+@click.option("--method", type=click.Choice(["fcm", "pcm", "all"]), default="all",
+              show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--workers", type=click.IntRange(min=0), help=_WORKERS_HELP)
+@click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
+@common_options
+def colmap(**kw: Any) -> int:
+    """COLMAP SfM (laser images held out), a coarse mesh when none is given, then scale."""
+    from sfm_laserscale.commands.colmap import ColmapInputs, ColmapOptions, run
+    from sfm_laserscale.meshing import CoarseMeshOptions
+    from sfm_laserscale.registration.mapping import SfmOptions
+
+    params = None
+    if kw["camera_params"] is not None:
+        try:
+            params = tuple(float(x) for x in kw["camera_params"].split(","))
+        except ValueError:
+            raise InputError("--camera-params must be comma-separated numbers, got "
+                             f"{kw['camera_params']!r}") from None
+    sfm = SfmOptions(backend=kw["backend"], colmap=kw["colmap_exe"],
+                     camera_model=kw["camera_model"], camera_params=params,
+                     max_features=kw["max_features"], sift_first_octave=kw["sift_first_octave"],
+                     threads=-1 if kw["workers"] is None else kw["workers"] + 1, seed=kw["seed"])
+    options = ColmapOptions(sfm=sfm, mesh=CoarseMeshOptions(method=kw["mesh_method"]),
+                            scale=_scale_options(kw))
+    inputs = ColmapInputs(images=kw["images"], laser_images=tuple(kw["laser_images"]),
+                          rig=kw["rig"], mesh=kw["mesh"], pairs=kw["pairs"], spots=kw["spots"])
+    result = run(inputs, kw["out"], options, overwrite=kw["overwrite"])
+    click.echo(result.summary)
+    return EXIT_OK if result.scale.success else EXIT_NO_SCALE
+
+
+def _scale_options(kw: dict[str, Any]) -> Any:
+    from sfm_laserscale.registration.sift_workers import SiftWorkerOptions
+    from sfm_laserscale.run_types import ScaleOptions
+
+    return ScaleOptions(method=kw["method"], seed=kw["seed"], progress=not kw["quiet"],
+                        sift_workers=SiftWorkerOptions(workers=kw["workers"]))
+
+
+@main.command(cls=_PipelineCommand)
+@click.option("--images", required=True, type=_path,
+              help="The source images (laser images among them are held out of SfM).")
+@click.option("--laser-images", required=True, multiple=True, type=_path,
+              help="Laser image files and/or folders.")
+@click.option("--rig", required=True, type=_path, help="Laser rig TOML file.")
+@click.option("--out", required=True, type=_path, help="Output folder (created).")
+@click.option("--intrinsics-k", help='Calibrated camera "fx;0;cx;0;fy;cy;0;0;1" (OpenMVG '
+              "pixels: cx = cx_colmap - 0.5).")
+@click.option("--focal-px", type=float, help="Focal length in pixels.")
+@click.option("--camera-db", type=_path, help="OpenMVG sensor width database (EXIF).")
+@click.option("--openmvg-bin", type=_path, help="Folder of the OpenMVG tools [the PATH].")
+@click.option("--openmvs-bin", type=_path, help="Folder of the OpenMVS tools [the PATH].")
+@click.option("--spots", type=_path, help="CSV image,laser,x,y replacing detection.")
+@click.option("--method", type=click.Choice(["fcm", "pcm", "all"]), default="all",
+              show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--workers", type=click.IntRange(min=0), help=_WORKERS_HELP)
+@click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
+@common_options
+def openmvg(**kw: Any) -> int:
+    """OpenMVG SfM and OpenMVS mesh (laser images held out), scale, then TransformScene."""
+    from sfm_laserscale.commands.openmvg import OpenMvgInputs, OpenMvgPipelineOptions, run
+    from sfm_laserscale.pipelines.openmvg_steps import OpenMvgOptions
+
+    tools = OpenMvgOptions(intrinsics_k=kw["intrinsics_k"], focal_px=kw["focal_px"],
+                           camera_db=kw["camera_db"],
+                           threads=0 if kw["workers"] is None else kw["workers"] + 1)
+    inputs = OpenMvgInputs(images=kw["images"], laser_images=tuple(kw["laser_images"]),
+                           rig=kw["rig"], spots=kw["spots"], openmvg_bin=kw["openmvg_bin"],
+                           openmvs_bin=kw["openmvs_bin"])
+    result = run(inputs, kw["out"], OpenMvgPipelineOptions(tools, _scale_options(kw)),
+                 overwrite=kw["overwrite"])
+    click.echo(result.summary)
+    return EXIT_OK if result.scale.success else EXIT_NO_SCALE
+
+
+@main.command()
+@click.argument("manifest", type=_path)
+@click.option("--out", required=True, type=_path, help="Output folder: DIR/<name>/ per model, "
+              "DIR/summary.csv, DIR/summary.html.")
+@click.option("--jobs", type=click.IntRange(min=1), help="Models at once, on a local Dask "
+              "cluster of processes [one per available core]; 1: in this process.")
+@click.option("--scheduler", help="Run on an existing Dask cluster (tcp://host:8786); its "
+              "workers need the package and the paths.")
+@click.option("--method", type=click.Choice(["fcm", "pcm", "all"]), default="all",
+              show_default=True, help="For rows without a method.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--overwrite", is_flag=True, help="Redo models whose inputs and options are "
+              "unchanged (skipped otherwise).")
+@common_options
+def batch(**kw: Any) -> int:
+    """Scale every model of a manifest (CSV) on Dask; one failed model never stops the others."""
+    from sfm_laserscale.commands.batch import BatchInputs, BatchOptions, run
+
+    options = BatchOptions(jobs=kw["jobs"], scheduler=kw["scheduler"], method=kw["method"],
+                           seed=kw["seed"], progress=not kw["quiet"])
+    result = run(BatchInputs(kw["manifest"]), kw["out"], options, overwrite=kw["overwrite"])
+    click.echo(result.summary)
+    return EXIT_OK if result.all_scaled else EXIT_NO_SCALE
 
 
 if __name__ == "__main__":  # pragma: no cover

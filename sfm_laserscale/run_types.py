@@ -12,6 +12,7 @@ from pathlib import Path
 
 from sfm_laserscale.detection import DetectionOptions, DetectionResult
 from sfm_laserscale.fusion import FusionOptions
+from sfm_laserscale.held_out import HeldOutCheck
 from sfm_laserscale.io.images import LaserImage
 from sfm_laserscale.io.meshes.mesh import TriangleMesh
 from sfm_laserscale.model import Camera, SparseModel, Spot
@@ -41,6 +42,11 @@ class ScaleInputs:
     database: Path | None = None
     features: Path | None = None
     spots: Path | None = None
+    # the pipeline folder the paths above were found in (sfm_laserscale.pipeline_folders)
+    colmap_workspace: Path | None = None
+    openmvg_project: Path | None = None
+    model_images: Path | None = None  # the model's source images: only for the held-out check
+    found: tuple[str, ...] = ()  # what was found in the pipeline folder and chosen, one line each
 
 
 @dataclass(frozen=True)
@@ -49,6 +55,8 @@ class ScaleOptions:
 
     method: str = "all"  # fcm | pcm | all (the headline method's candidates)
     seed: int = 0
+    # a laser image that is also a model image takes the model's pose (not registered)
+    reuse_model_poses: bool = False
     progress: bool = True
     overlays: bool = True
     detection: DetectionOptions = field(default_factory=DetectionOptions)
@@ -83,6 +91,9 @@ class LoadedInputs:
     descriptors_indexed: int  # the index's size, for the report
     # worker processes extracting the laser images' SIFT meanwhile; scale.run closes it
     sift_pool: SiftPool | None = None
+    held_out: HeldOutCheck | None = None  # laser images that are also model images
+    # --reuse-model-poses: laser image name -> the model's pose as its registration
+    reused_poses: dict[str, RegistrationResult] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

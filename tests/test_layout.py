@@ -168,8 +168,8 @@ def test_no_module_over_800_lines() -> None:
 
 
 def test_every_cli_command_has_its_module_in_commands() -> None:
-    assert sorted(main.commands) == ["apply", "calibrate", "demo", "detect", "scale",
-                                     "simulate"]
+    assert sorted(main.commands) == ["apply", "batch", "calibrate", "colmap", "demo", "detect",
+                                     "mesh", "openmvg", "scale", "simulate"]
     assert cli_commands_without_module(PACKAGE_DIR, main.commands) == []
 
 

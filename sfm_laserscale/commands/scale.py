@@ -22,6 +22,7 @@ from sfm_laserscale import __version__
 from sfm_laserscale.detection import DetectionResult, detect_spots
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.fusion import FusedScale, fuse
+from sfm_laserscale.held_out import check_held_out, reused_registrations
 from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
 from sfm_laserscale.io.meshes.mesh import TriangleMesh, load_mesh
 from sfm_laserscale.io.models import load_model
@@ -56,6 +57,7 @@ from sfm_laserscale.registration.index import DescriptorIndex, build_index, sele
 from sfm_laserscale.registration.pose import register_image
 from sfm_laserscale.registration.sift import extract_sift
 from sfm_laserscale.registration.sift_workers import start_sift_pool
+from sfm_laserscale.report.inputs_used import add_input_keys
 from sfm_laserscale.report.writer import build_report, summary_line, write_outputs
 from sfm_laserscale.rig import Rig, load_rig
 from sfm_laserscale.run_types import ImageRun, LoadedInputs, ScaleInputs, ScaleOptions, Timer
@@ -87,6 +89,9 @@ def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
     rig = load_rig(inputs.rig)
     model = load_model(inputs.model)
     laser_images = find_laser_images(inputs.laser_images, model)
+    held = check_held_out(laser_images, model, inputs.model_images or inputs.images)
+    laser_images, reused = (reused_registrations(held, laser_images, model, options.registration)
+                            if options.reuse_model_poses else (laser_images, {}))
     manual: dict[str, list[Spot]] = {}
     if inputs.spots is not None:
         manual = read_spots_csv(inputs.spots, [li.name for li in laser_images], rig.names)
@@ -105,7 +110,7 @@ def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
             pool.close()
         raise
     return LoadedInputs(model, mesh, rig, tuple(laser_images), manual, index,
-                        index.num_descriptors, pool)
+                        index.num_descriptors, pool, held, reused)
 
 
 def _load_index(inputs: ScaleInputs, model: SparseModel,
@@ -170,10 +175,12 @@ def detect_and_register(image: LaserImage, loaded: LoadedInputs, options: ScaleO
         raise ValueError("the descriptor index was released: register before scale.run drops it")
     with timer("register"):
         pool = loaded.sift_pool
-        feats = (extract_sift(rgb, options.sift) if pool is None
-                 else pool.features(image.path, rgb))
+        reg = loaded.reused_poses.get(image.name)  # --reuse-model-poses
+        if reg is None:
+            feats = (extract_sift(rgb, options.sift) if pool is None
+                     else pool.features(image.path, rgb))
+            reg = register_image(feats, camera, loaded.index, options.registration)
         del rgb
-        reg = register_image(feats, camera, loaded.index, options.registration)
     done = dict(registration=reg, detection=det, spots=spots, spot_reasons=spot_reasons)
     if not reg.success or reg.cam_from_world is None:
         return _image_run(image, reg.reason or "registration failed", **done)
@@ -384,6 +391,8 @@ def run(
     timer = Timer()
     with captured_log() as log_lines, captured_colmap_log() as colmap_log:
         logger.info("sfm-laserscale %s: scale %s", __version__, inputs)
+        for line in inputs.found:  # what a pipeline folder held and what was chosen
+            logger.info("found in the pipeline folder: %s", line)
         with timer("load"):
             loaded = load_inputs(inputs, options)
         worker_glog: list[str] = []
@@ -406,6 +415,7 @@ def run(
                 report = build_report(inputs, options, loaded, runs, headline, fused, checks, timer,
                                       pcm_joint=joint)
                 report["provenance"] = provenance(hashed, options, digests)
+                add_input_keys(report, inputs, loaded.held_out, options.reuse_model_poses)
                 write_outputs(tmp, inputs, loaded, runs, headline, report, options, timer)
                 logger.info("run finished: %s", report["timings_s"])
                 glog = merged_glog(colmap_log.lines(), worker_glog)

@@ -16,7 +16,14 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from sfm_laserscale.errors import InputError
-from sfm_laserscale.model import Camera, ImageFeatures, Pose
+from sfm_laserscale.model import (
+    INVALID_POINT3D_ID,
+    Camera,
+    Image,
+    ImageFeatures,
+    Pose,
+    SparseModel,
+)
 from sfm_laserscale.registration.index import DescriptorIndex
 from sfm_laserscale.registration.match import Matches, match_to_model
 from sfm_laserscale.registration.options import PoseOptions, RegistrationOptions
@@ -263,6 +270,34 @@ def register_image(
         inlier_point3D_ids=index.point3D_ids[matches.point_rows[m]],
         num_features=len(xy_all), match_time_s=t1 - t0, pose_time_s=t2 - t1,
     )
+
+
+def model_pose_registration(image: Image, camera: Camera, model: SparseModel,
+                            options: RegistrationOptions) -> RegistrationResult:
+    """The model's own pose of one of its images (``scale --reuse-model-poses``), as a
+    registration: its observations with a 3D point are the inliers, its covariance is ours
+    (the same formula as a registered pose's) and the acceptance rule applies as usual."""
+    has_point = image.point3D_ids != INVALID_POINT3D_ID
+    index = model.point_index
+    known = np.array([int(p) in index for p in image.point3D_ids[has_point]], dtype=bool)
+    sel = np.flatnonzero(has_point)[known]
+    xy = np.asarray(image.xy_px, dtype=np.float64)[sel].reshape(-1, 2)
+    ids = image.point3D_ids[sel]
+    xyz = model.points_xyz[[index[int(p)] for p in ids]].reshape(-1, 3)
+    n, pose = len(sel), image.cam_from_world
+    cov, sigma, rms = (_pose_covariance(pose, camera, xy, xyz, False) if n >= 4
+                       else (None, float("nan"), float("nan")))
+    reason = _acceptance_reason(n, n, rms, options.pose)
+    if reason is None and cov is None:
+        reason = "pose covariance is singular (degenerate observations)"
+    mask = np.ones(n, dtype=bool)
+    result = (PoseResult(True, None, pose, cov, n, n, mask, rms, sigma, camera)
+              if reason is None else _failed(f"model pose: {reason}", n, camera, mask, rms, sigma))
+    matches = Matches(sel.astype(np.int64), np.arange(n, dtype=np.int64),
+                      np.zeros(n, dtype=np.float32))
+    return RegistrationResult(matches=matches, pose=result, inlier_xy_px=xy, inlier_xyz=xyz,
+                              inlier_point3D_ids=ids, num_features=len(image.xy_px),
+                              match_time_s=0.0, pose_time_s=0.0)
 
 
 # --------------------------------------------------------------------------- logging
