@@ -1,0 +1,116 @@
+"""The mesh's depth error at each laser spot, from how well the mesh agrees with the model's own
+3D points around the spot.
+
+A mesh depth error δ along a spot's ray moves its hit by δ and the scale by δ / Z (relative).
+The mesh is checked against the registered laser image's inlier model points nearest to the spot
+in the image (``neighbours``, within ``max_radius`` of the image diagonal): each point's viewing
+ray from the laser camera is cast into the mesh, and δ = (mesh range) − (point range) along it.
+With m the median of the δ and ρ = 1.4826 MAD their robust spread (points beyond ``clip`` ρ of m
+left out: occlusions, points of other surfaces), and σ_p the points' own σ along their rays (the
+model's bundle-adjustment covariance, when known: their share of the spread is the points'
+noise, not the mesh's), the spot's mesh σ is
+
+    σ_mesh² = m² + max(ρ² − median(σ_p)², 0)
+
+m is the mesh's local offset (smoothing, a systematic part at that place), ρ its local
+roughness; both stay in σ at full size (one spot sees one place of the mesh, not an average).
+The term is random per spot (different places of the mesh), so fusion averages it over images.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sfm_laserscale.model import Camera, Pose
+from sfm_laserscale.raycast import MeshRaycaster, SpotHit
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class MeshErrorOptions:
+    """Options of :func:`spot_mesh_sigma`."""
+
+    enabled: bool = True
+    neighbours: int = 30  # inlier points nearest to the spot in the image
+    max_radius: float = 0.15  # ... within this fraction of the image diagonal
+    min_points: int = 5  # fewer points with a mesh hit: no estimate (σ 0, reported)
+    clip: float = 5.0  # points beyond this many robust spreads from the median: left out
+
+
+@dataclass(frozen=True)
+class SpotMeshError:
+    """One spot's mesh check: the σ it gives and its parts (model units)."""
+
+    laser: str
+    sigma: float  # σ_mesh (0 when not estimated)
+    offset: float  # m, the median mesh − point range difference
+    spread: float  # ρ, robust spread of the differences
+    point_sigma: float  # median σ of the points along their rays
+    n_points: int  # points used
+
+
+def neighbours(spot_xy: F64, inlier_xy: F64, camera: Camera, options: MeshErrorOptions
+               ) -> list[NDArray[np.intp]]:
+    """Per spot, the indices of the inlier points nearest to it in the image."""
+    radius = options.max_radius * float(np.hypot(camera.width, camera.height))
+    out = []
+    for xy in np.asarray(spot_xy, dtype=np.float64).reshape(-1, 2):
+        dist = np.linalg.norm(inlier_xy - xy, axis=1)
+        order = np.argsort(dist, kind="stable")[:options.neighbours]
+        out.append(order[dist[order] <= radius].astype(np.intp))
+    return out
+
+
+def check_rays(pose: Pose, inlier_xyz: F64, idx: Sequence[NDArray[np.intp]]) -> tuple[F64, F64]:
+    """Origins and unit directions (N, 3) of the rays camera -> every neighbour point."""
+    rows = np.unique(np.concatenate([*idx, np.zeros(0, np.intp)]))
+    centre = pose.center
+    d = inlier_xyz[rows] - centre
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+    return np.repeat(centre[None], len(rows), axis=0), d
+
+
+def _one(laser: str, delta: F64, sigma_p: F64, options: MeshErrorOptions) -> SpotMeshError:
+    """The mesh σ of one spot from its points' range differences and their own σ."""
+    ok = np.isfinite(delta)
+    delta, sigma_p = delta[ok], sigma_p[ok]
+    if len(delta) < options.min_points:
+        return SpotMeshError(laser, 0.0, float("nan"), float("nan"), float("nan"), len(delta))
+    m = float(np.median(delta))
+    rho = 1.4826 * float(np.median(np.abs(delta - m)))
+    if rho > 0:
+        keep = np.abs(delta - m) <= options.clip * rho
+        delta, sigma_p = delta[keep], sigma_p[keep]
+        m = float(np.median(delta))
+        rho = 1.4826 * float(np.median(np.abs(delta - m)))
+    sp = float(np.median(sigma_p))
+    sigma = float(np.sqrt(m * m + max(rho * rho - sp * sp, 0.0)))
+    return SpotMeshError(laser, sigma, m, rho, sp, len(delta))
+
+
+def spot_mesh_sigma(caster: MeshRaycaster, camera: Camera, pose: Pose, hits: Sequence[SpotHit],
+                    inlier_xy: F64, inlier_xyz: F64, point_sigma: F64,
+                    options: MeshErrorOptions) -> tuple[SpotMeshError, ...]:
+    """Each hit's mesh depth σ from the registered image's inlier points around its spot.
+
+    ``point_sigma`` (N,): the inlier points' σ along their viewing rays (0 where unknown).
+    """
+    if not options.enabled or len(inlier_xyz) == 0:
+        return tuple(SpotMeshError(h.laser, 0.0, float("nan"), float("nan"), float("nan"), 0)
+                     for h in hits)
+    xy = np.array([np.asarray(h.xy_px, np.float64).reshape(2) for h in hits]).reshape(-1, 2)
+    idx = neighbours(xy, inlier_xy, camera, options)
+    rows = np.unique(np.concatenate([*idx, np.zeros(0, np.intp)]))
+    origins, dirs = check_rays(pose, inlier_xyz, idx)
+    delta = np.full(len(inlier_xyz), np.nan)
+    if len(rows):
+        res = caster.cast(origins, dirs)
+        rng = np.linalg.norm(inlier_xyz[rows] - pose.center, axis=1)
+        delta[rows] = np.where(res.hit, res.distance - rng, np.nan)
+    return tuple(_one(h.laser, delta[i], np.asarray(point_sigma, np.float64)[i], options)
+                 for h, i in zip(hits, idx, strict=True))
