@@ -28,12 +28,14 @@ from sfm_laserscale.io.models import load_model
 from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
 from sfm_laserscale.io.spots_csv import read_spots_csv
 from sfm_laserscale.memory import trim_heap
+from sfm_laserscale.mesh_error import check_rays, neighbours, spot_mesh_sigma
 from sfm_laserscale.methods.pcm_joint import (
     PcmJointOptions,
     PcmJointResult,
     estimate_pcm_joint,
 )
 from sfm_laserscale.model import Camera, Pose, SparseModel, Spot
+from sfm_laserscale.model_checks import ModelChecks, run_model_checks
 from sfm_laserscale.provenance import (
     captured_colmap_log,
     captured_log,
@@ -46,11 +48,13 @@ from sfm_laserscale.provenance import (
 from sfm_laserscale.raycast import (
     MeshCrop,
     MeshRaycaster,
+    SpotHit,
     cast_spots,
     crop_for_rays,
     pixel_rays,
     spot_cast_rays,
 )
+from sfm_laserscale.registration.covariance import IntrinsicsField, analyse_intrinsics
 from sfm_laserscale.registration.features import open_model_features
 from sfm_laserscale.registration.index import DescriptorIndex, build_index, select_index_candidates
 from sfm_laserscale.registration.pose import register_image
@@ -199,6 +203,7 @@ def crop_mesh(runs: Sequence[ImageRun], loaded: LoadedInputs,
     the points of the images still estimated: a subset of these."""
     rays = [spot_cast_rays(r.spots, camera, pose, options.spot_cast)
             for r, camera, pose in _views(runs)]
+    rays += [_mesh_check_rays(r, camera, pose, options) for r, camera, pose in _views(runs)]
     origins = np.concatenate([o for o, _ in rays]) if rays else np.zeros((0, 3))
     dirs = np.concatenate([d for _, d in rays]) if rays else np.zeros((0, 3))
     if loaded.mesh is None:
@@ -207,6 +212,17 @@ def crop_mesh(runs: Sequence[ImageRun], loaded: LoadedInputs,
     return crop_for_rays(loaded.mesh.vertices, loaded.mesh.triangles, origins, dirs,
                          mesh_check_points(runs, options, loaded.model.extent),
                          replace(options.crop, point_radius=radius))
+
+
+def _mesh_check_rays(run: ImageRun, camera: Camera, pose: Pose, options: ScaleOptions
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The rays camera -> model points around the spots that the mesh error check casts."""
+    reg = run.registration
+    if not options.mesh_error.enabled or reg is None or not run.spots:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    xy = np.array([[s.x, s.y] for s in run.spots], dtype=np.float64)
+    return check_rays(pose, reg.inlier_xyz,
+                      neighbours(xy, reg.inlier_xy_px, camera, options.mesh_error))
 
 
 def mesh_check_points(runs: Sequence[ImageRun], options: ScaleOptions,
@@ -260,9 +276,32 @@ def mesh_model_agreement(points: np.ndarray, caster: MeshRaycaster, extent: floa
     return median / max(extent, 1e-12)
 
 
+def _model_error(run: ImageRun, camera: Camera, pose: Pose, hits: tuple[SpotHit, ...],
+                 caster: MeshRaycaster, field: IntrinsicsField | None, options: ScaleOptions
+                 ) -> dict[str, Any]:
+    """The observation's model-error inputs: each hit's mesh σ (with its check) and the model
+    intrinsics' directions (docs/DESIGN.md §4)."""
+    reg = run.registration
+    if reg is None:
+        return {}
+    hit_xyz = np.array([h.hit_world for h in hits], dtype=np.float64).reshape(-1, 3)
+    directions = () if field is None else field.directions(
+        camera, pose, reg.inlier_xy_px, reg.inlier_xyz, hit_xyz)
+    rays = reg.inlier_xyz - pose.center
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-300)
+    point_sigma = (np.zeros(len(rays)) if field is None
+                   else field.point_sigma_along(reg.inlier_point3D_ids, rays))
+    checks = spot_mesh_sigma(caster, camera, pose, hits, reg.inlier_xy_px, reg.inlier_xyz,
+                             point_sigma, options.mesh_error)
+    return {"mesh_sigma": np.array([c.sigma for c in checks]), "model_directions": directions,
+            "mesh_errors": checks}
+
+
 def cast_and_estimate(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster,
-                      options: ScaleOptions, timer: Timer) -> ImageRun:
-    """Cast the spots of a registered image into the mesh and estimate the scale."""
+                      options: ScaleOptions, timer: Timer,
+                      field: IntrinsicsField | None = None) -> ImageRun:
+    """Cast the spots of a registered image into the mesh and estimate the scale (with the
+    model's own error: the mesh's at each spot, the intrinsics' in ``field``)."""
     view = _view(run)
     if view is None or run.registration is None:
         return run
@@ -274,13 +313,17 @@ def cast_and_estimate(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster
         why = ("no laser spot found" if not run.spots else
                "no usable spot hit on the mesh: " + "; ".join(sorted(set(cast.reasons.values()))))
         return replace(run, spot_reasons=spot_reasons, reason=why)
-    obs = ImageObservation(image=run.name, camera=camera, cam_from_world=pose,
-                           pose_covariance=run.registration.covariance, hits=cast.hits)
     with timer("estimate"):
+        extra = _model_error(run, camera, pose, cast.hits, caster, field, options)
+        obs = ImageObservation(image=run.name, camera=camera, cam_from_world=pose,
+                               pose_covariance=run.registration.covariance, hits=cast.hits,
+                               mesh_sigma=extra.get("mesh_sigma"),
+                               model_directions=extra.get("model_directions", ()))
         est = estimate_image(obs, loaded.rig, options.estimation)
     usable = [e for e in est.estimates if not e.rejected]
     reason = None if usable else "every estimate of this image was rejected"
-    return replace(run, hits=cast.hits, spot_reasons=spot_reasons, estimates=est, reason=reason)
+    return replace(run, hits=cast.hits, spot_reasons=spot_reasons, estimates=est, reason=reason,
+                   observation=obs, mesh_errors=extra.get("mesh_errors", ()))
 
 
 def _observations(runs: Sequence[ImageRun]) -> list[ImageObservation]:
@@ -290,9 +333,9 @@ def _observations(runs: Sequence[ImageRun]) -> list[ImageObservation]:
         reg = r.registration
         if r.estimates is None or r.camera is None or reg is None or reg.cam_from_world is None:
             continue
-        out.append(ImageObservation(image=r.name, camera=r.camera,
-                                    cam_from_world=reg.cam_from_world,
-                                    pose_covariance=reg.covariance, hits=r.hits))
+        out.append(r.observation if r.observation is not None else ImageObservation(
+            image=r.name, camera=r.camera, cam_from_world=reg.cam_from_world,
+            pose_covariance=reg.covariance, hits=r.hits))
     return out
 
 
@@ -303,6 +346,8 @@ class MethodFusion:
     headline: FusedScale
     methods: dict[str, FusedScale]
     pcm_joint: PcmJointResult
+    model_checks: ModelChecks | None = None
+    intrinsics: IntrinsicsField | None = None
 
 
 def fuse_all(runs: Sequence[ImageRun], rig: Rig, options: ScaleOptions) -> MethodFusion:
@@ -319,6 +364,36 @@ def fuse_all(runs: Sequence[ImageRun], rig: Rig, options: ScaleOptions) -> Metho
         order = [m for m in order if m != "fcm"] or pcm
     headline = next((fused[m] for m in order if np.isfinite(fused[m].value)), fused[order[0]])
     return MethodFusion(headline, fused, joint)
+
+
+def check_model(fusion: MethodFusion, runs: Sequence[ImageRun], model: SparseModel,
+                field: IntrinsicsField | None, options: ScaleOptions) -> MethodFusion:
+    """The model checks (docs/DESIGN.md §4): the headline's σ widened by a focal error the data
+    show beyond the model's own, and the focal-corrected scale as a method of its own."""
+    if not options.model_checks.enabled or not np.isfinite(fusion.headline.value):
+        return replace(fusion, intrinsics=field)
+    centres = {r.name: pose.center for r, _, pose in _views(runs)}
+    model_centres = np.array([im.cam_from_world.center for im in model.images.values()])
+    checks = run_model_checks([r.estimates for r in runs if r.estimates is not None],
+                              fusion.methods, fusion.headline, fusion.pcm_joint.joint, centres,
+                              model_centres, _model_focal_sigma(runs, field),
+                              options.model_checks, options.fusion)
+    methods = dict(fusion.methods)
+    if checks.focal.corrected is not None:
+        methods[checks.focal.corrected.method] = checks.focal.corrected
+    head = checks.headline
+    methods[head.method] = head
+    return MethodFusion(head, methods, fusion.pcm_joint, checks, field)
+
+
+def _model_focal_sigma(runs: Sequence[ImageRun], field: IntrinsicsField | None) -> float:
+    """σ(δf / f) of the laser images' camera in the model (NaN when not analysed)."""
+    if field is None:
+        return float("nan")
+    ids = [r.camera.camera_id for r in runs if r.estimates is not None and r.camera is not None]
+    cid = max(set(ids), key=ids.count) if ids else None
+    cam = field.cameras.get(cid) if cid is not None else None
+    return float("nan") if cam is None else cam.focal_sigma
 
 
 def register_all(loaded: LoadedInputs, options: ScaleOptions, timer: Timer) -> list[ImageRun]:
@@ -355,16 +430,31 @@ def _estimate_all(
         caster = crop.raycaster()
     logger.info("mesh cropped to the spots' rays and the check points: %d of %d triangles "
                 "(%.2f %%)", len(crop.triangles), crop.source_triangles, 100 * crop.kept_fraction)
-    runs = [cast_and_estimate(r, loaded, caster, options, timer) for r in runs]
+    with timer("estimate"):
+        field = intrinsics_field(inputs, runs, options)
+    runs = [cast_and_estimate(r, loaded, caster, options, timer, field) for r in runs]
     for r in runs:
         logger.info("laser image %s: %s", r.name,
                     "estimated" if r.reason is None else f"no estimate ({r.reason})")
-    fusion = fuse_all(runs, loaded.rig, options)
+    fusion = check_model(fuse_all(runs, loaded.rig, options), runs, loaded.model, field,
+                         options)
     checks = {"mesh_model_agreement": mesh_model_agreement(
         mesh_check_points(runs, options, loaded.model.extent), caster, loaded.model.extent,
         lambda: load_mesh(inputs.mesh))}
     logger.info("timings so far: %s", timer.as_dict())
     return loaded, runs, fusion, checks
+
+
+def intrinsics_field(inputs: ScaleInputs, runs: Sequence[ImageRun], options: ScaleOptions
+                     ) -> IntrinsicsField | None:
+    """The model intrinsics' error around the registered laser images' inlier points (the model
+    is read again with its observations: the run dropped them after the index)."""
+    ids = [r.registration.inlier_point3D_ids for r, _, _ in _views(runs)
+           if r.registration is not None]
+    if not ids:
+        return None
+    return analyse_intrinsics(lambda: load_model(inputs.model), np.concatenate(ids),
+                              options.intrinsics)
 
 
 def _provenance_inputs(inputs: ScaleInputs, loaded: LoadedInputs) -> list[Path | None]:
@@ -404,7 +494,7 @@ def run(
             headline, fused, joint = fusion.headline, fusion.methods, fusion.pcm_joint
             with staged_output_dir(out_dir, overwrite) as tmp, timer("write"):
                 report = build_report(inputs, options, loaded, runs, headline, fused, checks, timer,
-                                      pcm_joint=joint)
+                                      pcm_joint=joint, model=fusion)
                 report["provenance"] = provenance(hashed, options, digests)
                 write_outputs(tmp, inputs, loaded, runs, headline, report, options, timer)
                 logger.info("run finished: %s", report["timings_s"])
