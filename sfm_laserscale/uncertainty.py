@@ -58,6 +58,7 @@ from sfm_laserscale.model_error import (
 )
 from sfm_laserscale.raycast import SpotHit
 from sfm_laserscale.rig import Rig
+from sfm_laserscale.rig_checks import refused_pairs
 
 logger = logging.getLogger(__name__)
 
@@ -488,8 +489,9 @@ def _fcm_estimates(lay: _Layout, image: str, x0: F64, cos0: F64, cov: F64,
 
 
 def _pair_estimates(lay: _Layout, image: str, x0: F64, cos0: F64, cov: F64,
-                    options: EstimationOptions) -> list[Estimate]:
-    """PCM and Direct 3D estimates of each pair with both hits."""
+                    options: EstimationOptions, refused: Mapping[str, str]) -> list[Estimate]:
+    """PCM and Direct 3D estimates of each pair with both hits (``refused``: pairs whose beams
+    are far from parallel, rejected with that reason)."""
     nf, npair = len(lay.fcm_beam), len(lay.pair_names)
     pcm: list[Estimate] = []
     d3: list[Estimate] = []
@@ -497,7 +499,7 @@ def _pair_estimates(lay: _Layout, image: str, x0: F64, cos0: F64, cov: F64,
         k1, k2 = (int(k) for k in lay.pair_hits[j])
         h1, h2, sep = x0[k1], x0[k2], float(lay.pair_sep[j])
         res = pcm_scale(h1, h2, sep)
-        graze = _grazing(lay, cos0, (k1, k2), options)
+        graze = refused.get(name) or _grazing(lay, cos0, (k1, k2), options)
         mid = float(np.linalg.norm(0.5 * (h1 + h2)))
         for method, value, row, dest, reason in (
             ("pcm", res.scale, 2 * nf + j, pcm, res.reason or graze),
@@ -556,7 +558,7 @@ def estimate_image(obs: ImageObservation, rig: Rig, options: EstimationOptions
     c_tot = c_rand + g @ g.T
     _check_hits_on_rays(lay, obs, x0)
     ests = _fcm_estimates(lay, obs.image, x0, cos0, c_tot, options)
-    ests += _pair_estimates(lay, obs.image, x0, cos0, c_tot, options)
+    ests += _pair_estimates(lay, obs.image, x0, cos0, c_tot, options, refused_pairs(rig))
     per_term: dict[str, dict[str, F64]] = {m: {} for m in METHODS}
     for term, cov in terms.items():
         for m, block in _per_method(lay, cov, ests, True).items():

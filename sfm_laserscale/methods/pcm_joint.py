@@ -27,6 +27,7 @@ from sfm_laserscale.errors import InputError
 from sfm_laserscale.fusion import FusedScale, FusionOptions, error_budget, fuse, interval
 from sfm_laserscale.raycast import SpotHit
 from sfm_laserscale.rig import Pair, Rig
+from sfm_laserscale.rig_checks import refused_pairs
 from sfm_laserscale.uncertainty import (
     RIG_PARAM_SUFFIXES,
     EstimationOptions,
@@ -496,6 +497,9 @@ def _fit_pair(pair: Pair, data: Sequence[_ImageData], rig: Rig, options: PcmJoin
               shifted: Shifted | None = None) -> _PairState:
     """Joint fit of one parallel pair over the images that see both its lasers."""
     name = "+".join(pair.lasers)
+    refused = refused_pairs(rig).get(name)
+    if refused is not None:
+        return _not_fitted(name, [], refused)
     entries, unusable = _pair_entries(pair, data, options.estimation.min_incidence_cos)
     sens = [dat.sens[np.r_[dat.rows(k1), dat.rows(k2)]] for dat, k1, k2 in entries]  # (6, m)
     x = np.array([dat.x[[k1, k2]] for dat, k1, k2 in entries]).reshape(-1, 2, 3)
