@@ -17,7 +17,8 @@ from sfm_laserscale.report.model_warnings import model_warnings
 
 #: Methods in the order the report shows them (the headline candidates first, baselines last).
 METHOD_ORDER = ("fcm", "pcm", "pcm_joint", "direct3d")
-METHOD_LABELS = {"fcm": "FCM", "pcm": "PCM", "pcm_joint": "PCM-joint", "direct3d": "Direct 3D"}
+METHOD_LABELS = {"fcm": "FCM", "pcm": "PCM", "pcm_joint": "PCM-joint", "direct3d": "Direct 3D",
+                 "focal_corrected": "Focal-corrected"}
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,8 @@ from sfm_laserscale.focal_fit import FocalEstimate
 from sfm_laserscale.fusion import FusedScale
 from sfm_laserscale.model_checks import Comparison, LaserCheck, ModelChecks, Segment, Trend
 from sfm_laserscale.registration.covariance import IntrinsicsField
+from sfm_laserscale.rig import Rig
+from sfm_laserscale.rig_checks import check_pairs, pair_warnings
 from sfm_laserscale.run_types import ImageRun
 
 #: estimates.csv ``method`` of the per-segment rows (the headline method follows a colon).
@@ -125,6 +127,20 @@ def model_error_dict(field: IntrinsicsField | None, runs: Sequence[ImageRun], sc
     sig = [float(m.sigma * k) for r in runs for m in r.mesh_errors if math.isfinite(m.sigma * k)]
     return {"intrinsics": intr,
             "mesh": {"spots": spots, "median_sigma_m": _num(np.median(sig)) if sig else None}}
+
+
+def pair_checks_dict(rig: Rig) -> list[dict[str, Any]]:
+    """report.json ``rig.pair_checks``: each declared pair's geometry against PCM's assumptions
+    (rig_checks.py) and its problems in plain words."""
+    return [{"pair": g.pair, "calibrated": g.calibrated, "angle_deg": _num(g.angle_deg),
+             "angle_sigma_deg": _num(g.angle_sigma_deg),
+             "separation_change_pct_per_m": _num(g.separation_change_pct_per_m),
+             "distance_difference_m": _num(g.distance_difference_m),
+             "separation_m": _num(g.separation_m),
+             "calibrated_separation_m": _num(g.calibrated_separation_m),
+             "parallel": g.parallel, "equidistant": g.equidistant, "refused": g.refused,
+             "reason": g.reason, "problems": pair_warnings(g)}
+            for g in check_pairs(rig)]
 
 
 def append_segment_rows(path: Path, report: dict[str, Any]) -> None:

@@ -138,10 +138,18 @@ def _budget_notes(report: dict[str, Any]) -> list[dict[str, str]]:
     return out
 
 
+def rig_pair_warnings(report: dict[str, Any]) -> list[dict[str, str]]:
+    """A warning per problem of a declared pair (not parallel, camera not equidistant)."""
+    return [_w("warning", "rig_pair", text)
+            for g in (report.get("rig") or {}).get("pair_checks", []) for text in g["problems"]]
+
+
 def model_warnings(report: dict[str, Any]) -> list[dict[str, str]]:
-    """Warnings and notes of the model checks (none when report.json has no ``model_checks``)."""
+    """Warnings and notes of the rig's pairs and of the model checks (the latter only when
+    report.json has ``model_checks`` and a scale)."""
     checks = report.get("model_checks")
     if not checks or not _finite(report["scale"].get("value")):
-        return []
-    return (_comparison_warnings(checks) + _laser_warnings(checks) + _distance_warnings(checks)
+        return rig_pair_warnings(report)
+    return (rig_pair_warnings(report) + _comparison_warnings(checks) + _laser_warnings(checks)
+            + _distance_warnings(checks)
             + _focal_warnings(checks, report) + _drift_warnings(checks) + _budget_notes(report))

@@ -34,6 +34,7 @@ from sfm_laserscale.report.model_report import (
     budget_dict,
     model_checks_dict,
     model_error_dict,
+    pair_checks_dict,
 )
 from sfm_laserscale.report.overlays import draw_overlay, near_misses, reprojected_points
 from sfm_laserscale.report.validate import check_html
@@ -209,6 +210,7 @@ def build_report(
             "name": loaded.rig.name,
             "lasers": loaded.rig.names,
             "pairs": [list(p.lasers) for p in loaded.rig.pairs],
+            "pair_checks": pair_checks_dict(loaded.rig),
         },
         "model": {
             "format": loaded.model.source_format,
