@@ -8,8 +8,10 @@ parallel beams. Where the γ of the data differ (calibrated beams at several ran
 tilts, or FCM beside PCM), ε is identifiable: with u_j = 1 / s_j = a + b γ_j (a = 1/s, b = −ε/s
 to first order), GLS over
 
-- every usable FCM estimate of the images FCM fusion kept, with their joint covariance
-  (random per image; the rig's shared part across images), and
+- every FCM estimate the estimators accepted, of the images FCM fusion kept (also those it
+  left out as inconsistent within their image: beams of different γ disagree under a focal
+  error), with their joint covariance (random per image; the rig's shared part), estimates
+  beyond ``outlier_sigma`` of the fit of the others left out worst first, and
 - the PCM-type value (PCM-joint when its joint fit ran, else the fused PCM) as one more datum,
   independent of the FCM estimates (they share spots; ignoring it overstates σ(ε̂) a little),
 
@@ -45,6 +47,7 @@ class FocalFitOptions:
     min_estimates: int = 3
     max_sigma: float = 0.01  # σ(ε̂) above this: the data do not determine the focal error
     significance: float = 3.0  # |ε̂| / σ(ε̂) above this: a significant focal error
+    outlier_sigma: float = 4.0  # leave-one-out residual beyond this: the estimate is left out
 
 
 @dataclass(frozen=True)
@@ -74,9 +77,11 @@ class _Data:
 
 
 def _fcm_data(estimates: Sequence[ImageEstimates], fcm: FusedScale) -> _Data:
-    """Usable FCM estimates of the images FCM fusion kept, their γ and joint covariance."""
+    """FCM estimates of the images FCM fusion kept, their γ and joint covariance: every estimate
+    the estimators accepted, also those fusion left out as inconsistent within their image (a
+    focal error makes beams of different γ disagree: those carry the information)."""
     used = set(fcm.images_used)
-    rejected = {(im, laser) for im, laser, _ in fcm.rejected}
+    rejected: set[tuple[str, str]] = set()
     vals: list[float] = []
     gam: list[float] = []
     blocks: list[F64] = []
@@ -106,7 +111,8 @@ def _fcm_data(estimates: Sequence[ImageEstimates], fcm: FusedScale) -> _Data:
         cov[at:at + len(b), at:at + len(b)] = b
         at += len(b)
     params = sorted({p for row in rig_rows for p in row})
-    g = np.array([[row.get(p, 0.0) for p in params] for row in rig_rows]).reshape(n, -1)
+    g = np.array([[row.get(p, 0.0) for p in params] for row in rig_rows]).reshape(
+        n, len(params))
     return _Data(np.array(vals), np.array(gam), cov + g @ g.T, tuple(names),
                  ("fcm",) if n else ())
 
@@ -162,6 +168,24 @@ def _gls(u: F64, x: F64, cov: F64) -> tuple[F64, F64, float]:
     return theta, h_inv, float(r @ w @ r)
 
 
+def _robust(u: F64, x: F64, cov: F64, options: FocalFitOptions) -> NDArray[np.intp]:
+    """Indices kept after dropping, worst first, estimates whose residual from the fit of the
+    others exceeds ``outlier_sigma`` (a wrong spot is no focal error), at most a quarter."""
+    keep = list(range(len(u)))
+    while len(keep) > max(options.min_estimates, 3) and len(keep) > 0.75 * len(u):
+        z = np.zeros(len(keep))
+        for j in range(len(keep)):
+            o = [k for i, k in enumerate(keep) if i != j]
+            theta, cov_t, _ = _gls(u[o], x[o], cov[np.ix_(o, o)])
+            var = cov[keep[j], keep[j]] + float(x[keep[j]] @ cov_t @ x[keep[j]])
+            z[j] = abs(u[keep[j]] - float(x[keep[j]] @ theta)) / np.sqrt(var)
+        worst = int(np.argmax(z))
+        if z[worst] <= options.outlier_sigma:
+            break
+        keep.pop(worst)
+    return np.array(keep, dtype=np.intp)
+
+
 def fit_focal_error(estimates: Sequence[ImageEstimates], methods: dict[str, FusedScale],
                     options: FocalFitOptions, fusion: FusionOptions, joint: bool = False
                     ) -> FocalEstimate:
@@ -179,6 +203,10 @@ def fit_focal_error(estimates: Sequence[ImageEstimates], methods: dict[str, Fuse
     x = np.column_stack([np.ones(len(u)), data.gamma])
     if float(np.ptp(data.gamma)) < 1e-6:
         return _not_determined(data, "every estimate responds alike to the focal length")
+    keep = _robust(u, x, cov_u, options)
+    data = _Data(data.values[keep], data.gamma[keep], data.cov[np.ix_(keep, keep)],
+                 tuple(data.images[i] for i in keep), data.sources)
+    u, cov_u, x = u[keep], cov_u[np.ix_(keep, keep)], x[keep]
     theta, cov_t, chi2 = _gls(u, x, cov_u)
     a, b = float(theta[0]), float(theta[1])
     grad = np.array([b / a**2, -1.0 / a])

@@ -35,7 +35,6 @@ from sfm_laserscale.focal_fit import (
     widen_for_focal,
 )
 from sfm_laserscale.fusion import FusedScale, FusionOptions, combine_image, fuse
-from sfm_laserscale.model_error import term_of
 from sfm_laserscale.uncertainty import ImageEstimates
 
 F64 = NDArray[np.float64]
@@ -164,9 +163,11 @@ def comparisons(methods: dict[str, FusedScale], joint: bool, z_limit: float
 
 def _laser_values(estimates: Sequence[ImageEstimates], fcm: FusedScale
                   ) -> dict[str, tuple[list[float], list[float], list[dict[str, float]]]]:
-    """Per laser: usable FCM values, random σ and shared rig gradients of the kept images."""
+    """Per laser: FCM values, random σ and shared gradients of the images fusion kept: every
+    estimate the estimators accepted, also those fusion left out within their image (a laser
+    that is off in every image is what this check looks for)."""
     used = set(fcm.images_used)
-    rejected = {(im, laser) for im, laser, _ in fcm.rejected}
+    rejected: set[tuple[str, str]] = set()
     out: dict[str, tuple[list[float], list[float], list[dict[str, float]]]] = {}
     for est in estimates:
         if est.image not in used:
@@ -199,26 +200,45 @@ def _mean(vals: list[float], sig: list[float], grads: list[dict[str, float]]
     return value, sigma, g
 
 
+def _vs(laser: str, pool: list[str], means: dict[str, tuple[float, float, dict[str, float]]],
+        per: dict[str, tuple[list[float], list[float], list[dict[str, float]]]]
+        ) -> tuple[float, float, float]:
+    """A laser against the others of ``pool`` together: (difference %, its σ %, z)."""
+    v, s, g = means[laser]
+    rest = [(x, y, z) for other in pool if other != laser
+            for x, y, z in zip(*per[other], strict=True)]
+    vo, so, go = _mean([r[0] for r in rest], [r[1] for r in rest], [r[2] for r in rest])
+    shared = math.sqrt(sum((g.get(k, 0.0) - go.get(k, 0.0)) ** 2 for k in set(g) | set(go)))
+    sigma = math.sqrt(s**2 + so**2 + shared**2)
+    z = (v - vo) / sigma if sigma > 0 else float("inf")
+    return 100 * (v / vo - 1), 100 * sigma / vo, z
+
+
 def laser_checks(estimates: Sequence[ImageEstimates], fcm: FusedScale | None, z_limit: float
                  ) -> tuple[LaserCheck, ...]:
-    """Each laser's FCM scale over the images against the other lasers' together."""
+    """Each laser's FCM scale over the images against the other lasers' together. The worst
+    laser beyond ``z_limit`` is flagged and leaves the reference, iterated (one laser off must
+    not make the others look off); the others are compared with the final reference."""
     if fcm is None or not math.isfinite(fcm.value):
         return ()
     per = _laser_values(estimates, fcm)
     if len(per) < 2:
         return ()
+    means = {la: _mean(*per[la]) for la in per}
+    pool = sorted(per)
+    flagged: dict[str, tuple[float, float, float]] = {}
+    while len(pool) > 2:
+        res = {la: _vs(la, pool, means, per) for la in pool}
+        worst = max(pool, key=lambda la: abs(res[la][2]))
+        if abs(res[worst][2]) <= z_limit:
+            break
+        flagged[worst] = res[worst]
+        pool.remove(worst)
     out = []
-    for laser, (vals, sig, grads) in sorted(per.items()):
-        v, s, g = _mean(vals, sig, grads)
-        rest = [(x, y, z) for other, (a, b, c) in per.items() if other != laser
-                for x, y, z in zip(a, b, c, strict=True)]
-        vo, so, go = _mean([r[0] for r in rest], [r[1] for r in rest], [r[2] for r in rest])
-        names = set(g) | set(go)
-        shared = math.sqrt(sum((g.get(k, 0.0) - go.get(k, 0.0)) ** 2 for k in names
-                               if term_of(k) in ("rig", "intrinsics")))
-        sigma = math.sqrt(s**2 + so**2 + shared**2)
-        z = (v - vo) / sigma if sigma > 0 else float("inf")
-        out.append(LaserCheck(laser, len(vals), v, s, 100 * (v / vo - 1), 100 * sigma / vo, z,
+    for la in sorted(per):
+        d, sig, z = flagged[la] if la in flagged else _vs(la, pool if la in pool else pool + [la],
+                                                          means, per)
+        out.append(LaserCheck(la, len(per[la][0]), means[la][0], means[la][1], d, sig, z,
                               abs(z) <= z_limit))
     return tuple(out)
 
@@ -273,9 +293,12 @@ def trend(points: Sequence[ImagePoint], x: F64, variable: str, options: ModelChe
     ym = float(np.sum(w * y[ok]) / w.sum())
     slope = float(np.sum(w * (x[ok] - xm) * (y[ok] - ym)) / sxx)
     chi2 = float(np.sum(w * (y[ok] - ym - slope * (x[ok] - xm)) ** 2))
-    birge = max(1.0, chi2 / (n - 2)) if n > 2 else 1.0
-    sigma = math.sqrt(birge / sxx)
-    p = float(2 * stats.t.sf(abs(slope) / sigma, n - 2)) if n > 2 else float("nan")
+    birge = chi2 / (n - 2) if n > 2 else 1.0
+    # the stated σ (normal) unless the scatter exceeds it: then widened, Student's t
+    sigma = math.sqrt(max(birge, 1.0) / sxx)
+    t_ = abs(slope) / sigma
+    p = (float(2 * stats.t.sf(t_, n - 2)) if birge > 1.0 else float(2 * stats.norm.sf(t_))
+         ) if n > 2 else float("nan")
     span = float(np.ptp(x[ok]))
     return Trend(variable, slope, sigma, slope * span, p, bool(p < options.p_value), n,
                  tuple(float(v) for v in x), tuple(float(v) for v in y),

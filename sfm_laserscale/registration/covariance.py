@@ -3,12 +3,15 @@ to a change of the intrinsics (pycolmap), as the laser images see it.
 
 1. A sub-model: the model images sharing most 3D points with the registered laser images
    (``max_images``), their observations and points (tracks of 2+ of those images).
-2. Covariance: pycolmap's bundle adjustment of the sub-model with the refined intrinsics free
-   (which ones: ``refined``), ``estimate_ba_covariance``'s covariance of the camera's parameters
-   (unit pixel noise) scaled by σ̂² = Σ r² / (n_res − n_param) of the adjusted sub-model,
+2. Covariance: pycolmap's bundle-adjustment problem of the sub-model with the refined
+   intrinsics free (which ones: ``refined``), evaluated as the model is (not re-solved: an
+   intrinsic the images do not determine would drift), ``estimate_ba_covariance``'s covariance
+   of the camera's parameters (unit pixel noise) scaled by σ̂² = Σ r² / (n_res − n_param),
    expressed in δf / f (all focal parameters together) and the extra (distortion) parameters.
-   ``focal_sigma_floor`` bounds σ(δf / f) from below; where the covariance cannot be estimated,
-   ``focal_sigma_prior`` is used (a note says so).
+   Where the images do not determine the intrinsics (the covariance is rank deficient, e.g.
+   nadir images at one altitude: focal length and altitude trade exactly), or it cannot be
+   estimated, ``focal_sigma_prior`` is used (a note says so); ``focal_sigma_floor`` bounds
+   σ(δf / f) from below (self-calibration is less accurate than its formal precision).
 3. Response: for each parameter, bundle adjustment of the sub-model with the intrinsics held at
    ±σ of it (poses and points free); each solution is aligned to the model by a similarity fitted
    to the points (so a change of the model's overall scale is part of the truth, not of the
@@ -232,7 +235,7 @@ def _ba_options(refined: tuple[str, ...], fixed: bool, max_iterations: int
     opts.refine_extra_params = not fixed and "extra" in refined
     opts.refine_principal_point = not fixed and "principal" in refined
     opts.print_summary = False
-    opts.ceres.solver_options.max_num_iterations = int(max_iterations)
+    opts.ceres.solver_options.max_num_iterations = max(int(max_iterations), 0)
     opts.ceres.solver_options.function_tolerance = 1e-12
     opts.ceres.solver_options.gradient_tolerance = 1e-12
     opts.ceres.solver_options.parameter_tolerance = 1e-12
@@ -257,7 +260,7 @@ def _points(rec: pycolmap.Reconstruction, order: Sequence[int]) -> F64:
 
 @dataclass(frozen=True)
 class _Adjusted:
-    """The sub-model adjusted with its intrinsics free, and what its covariance gave."""
+    """The sub-model as given, and what its covariance gave."""
 
     rec: pycolmap.Reconstruction
     sigma_px: float
@@ -265,8 +268,10 @@ class _Adjusted:
 
 
 def _adjust(rec: pycolmap.Reconstruction, options: IntrinsicsOptions) -> _Adjusted:
-    """Bundle adjustment with the refined intrinsics free; covariance and σ̂ of the residuals."""
-    ba = _adjuster(rec, _ba_options(options.refined, False, options.ba_max_iterations))
+    """The bundle-adjustment problem with the refined intrinsics free, evaluated where the model
+    is (no iteration: the SfM left it at its optimum, and an unobservable intrinsic would drift):
+    covariance and σ̂ of the residuals."""
+    ba = _adjuster(rec, _ba_options(options.refined, False, 0))
     summary = ba.solve()
     ceres = summary.ceres_summary
     dof = int(ceres.num_residuals) - int(ceres.num_effective_parameters)
