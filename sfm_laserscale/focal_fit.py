@@ -257,13 +257,16 @@ def fused_focal_sensitivity(estimates: Sequence[ImageEstimates], fused: FusedSca
 
 def focal_rms(focal: FocalEstimate, prior: float) -> float:
     """RMS of the focal error given the data's ε̂ ± σ(ε̂) and the model's own σ (the prior):
-    √(μ² + v) with v = (prior⁻² + σ⁻²)⁻¹, μ = v ε̂ / σ² (normal prior N(0, prior²)). Without
-    a prior: √(ε̂² + σ²) when ε̂ is significant, else 0. NaN when ε̂ is not determined."""
+    √(ε̂² + σ²) when ε̂ is significant (the data contradict the prior), else the posterior
+    √(μ² + v), v = (prior⁻² + σ⁻²)⁻¹, μ = v ε̂ / σ² (normal prior N(0, prior²); 0 without a
+    prior). NaN when ε̂ is not determined."""
     eps, sig = focal.focal_error, focal.sigma
     if not (math.isfinite(eps) and math.isfinite(sig) and sig > 0):
         return float("nan")
+    if focal.significant:  # the data contradict the prior: no shrinking towards it
+        return math.hypot(eps, sig)
     if not prior > 0:
-        return math.hypot(eps, sig) if focal.significant else 0.0
+        return 0.0
     v = 1.0 / (1.0 / prior**2 + 1.0 / sig**2)
     return math.sqrt((v * eps / sig**2) ** 2 + v)
 

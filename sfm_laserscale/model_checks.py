@@ -38,6 +38,8 @@ from sfm_laserscale.fusion import FusedScale, FusionOptions, combine_image, fuse
 from sfm_laserscale.uncertainty import ImageEstimates
 
 F64 = NDArray[np.float64]
+#: A laser's image beyond this many σ of its other images: a wrong spot, left out of its check.
+OUTLIER_SIGMA = 4.0
 
 
 @dataclass(frozen=True)
@@ -99,6 +101,18 @@ class Trend:
 
 
 @dataclass(frozen=True)
+class ScatterTest:
+    """χ² of the checked method's estimates about their image values and of the images about
+    the fused value, against their stated σ: the σ of spots, pose or mesh understated."""
+
+    chi2: float
+    dof: int
+    ratio: float  # √(χ² / dof)
+    p: float
+    ok: bool
+
+
+@dataclass(frozen=True)
 class Segment:
     """The headline method fused over one stretch of the survey."""
 
@@ -122,6 +136,7 @@ class ModelChecks:
     drift_outliers: tuple[str, ...]  # images fusion left out that lie in the drift's range
     headline: FusedScale
     method: str  # the method the per-image checks use
+    scatter: ScatterTest | None = None
     notes: tuple[str, ...] = ()
 
 
@@ -184,6 +199,24 @@ def _laser_values(estimates: Sequence[ImageEstimates], fcm: FusedScale
     return out
 
 
+def _without_outliers(vals: list[float], sig: list[float], grads: list[dict[str, float]],
+                      limit: float) -> tuple[list[float], list[float], list[dict[str, float]]]:
+    """One laser's values without those beyond ``limit`` σ of the laser's other images (a wrong
+    spot in one image is not a laser that is off), worst first, at least two kept."""
+    keep = list(range(len(vals)))
+    while len(keep) > 2:
+        z = []
+        for k in keep:
+            o = [i for i in keep if i != k]
+            m, sm, _ = _mean([vals[i] for i in o], [sig[i] for i in o], [{} for _ in o])
+            z.append(abs(vals[k] - m) / math.hypot(sig[k], sm))
+        worst = int(np.argmax(z))
+        if z[worst] <= limit:
+            break
+        keep.pop(worst)
+    return [vals[i] for i in keep], [sig[i] for i in keep], [grads[i] for i in keep]
+
+
 def _mean(vals: list[float], sig: list[float], grads: list[dict[str, float]]
           ) -> tuple[float, float, dict[str, float]]:
     """Inverse-variance mean of 1/s, its random σ and its shared gradient (s units)."""
@@ -221,7 +254,8 @@ def laser_checks(estimates: Sequence[ImageEstimates], fcm: FusedScale | None, z_
     not make the others look off); the others are compared with the final reference."""
     if fcm is None or not math.isfinite(fcm.value):
         return ()
-    per = _laser_values(estimates, fcm)
+    per = {la: _without_outliers(*v, limit=OUTLIER_SIGMA)
+           for la, v in _laser_values(estimates, fcm).items()}
     if len(per) < 2:
         return ()
     means = {la: _mean(*per[la]) for la in per}
@@ -334,6 +368,26 @@ def segments(estimates: Sequence[ImageEstimates], points: Sequence[ImagePoint], 
     return tuple(out)
 
 
+def scatter_test(estimates: Sequence[ImageEstimates], fused: FusedScale, method: str,
+                 options: ModelCheckOptions, fusion: FusionOptions) -> ScatterTest | None:
+    """Within-image χ² of the images fusion kept plus the between-image χ², one test."""
+    used = set(fused.images_used)
+    chi2, dof = 0.0, 0
+    for est in estimates:
+        c = combine_image(est, method, fusion) if est.image in used else None
+        if c is not None and c.dof > 0 and math.isfinite(c.chi2):
+            chi2 += c.chi2
+            dof += c.dof
+    n = len(used)
+    if n > 1 and math.isfinite(fused.birge_ratio):
+        chi2 += fused.birge_ratio**2 * (n - 1)
+        dof += n - 1
+    if dof == 0:
+        return None
+    p = float(stats.chi2.sf(chi2, dof))
+    return ScatterTest(chi2, dof, math.sqrt(chi2 / dof), p, p >= options.p_value)
+
+
 # --------------------------------------------------------------------------- all checks
 
 
@@ -369,7 +423,8 @@ def run_model_checks(estimates: Sequence[ImageEstimates], methods: dict[str, Fus
                                    fusion)
     return ModelChecks(comparisons(methods, joint, options.z_limit),
                        laser_checks(estimates, methods.get("fcm"), options.z_limit), dist,
-                       focal, gamma, drift, segs, outliers, widened, method)
+                       focal, gamma, drift, segs, outliers, widened, method,
+                       scatter_test(estimates, fused, method, options, fusion))
 
 
 def _drift(estimates: Sequence[ImageEstimates], points: Sequence[ImagePoint],

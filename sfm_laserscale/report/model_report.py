@@ -98,7 +98,11 @@ def model_checks_dict(checks: ModelChecks | None, model_sigma: float) -> dict[st
     if drift is not None:
         drift["segments"] = [_segment(s) for s in checks.segments]
         drift["outliers_in_range"] = list(checks.drift_outliers)
+    sc = checks.scatter
     return {"method": checks.method,
+            "scatter": None if sc is None else {"chi2": _num(sc.chi2), "dof": sc.dof,
+                                                "ratio": _num(sc.ratio), "p": _num(sc.p),
+                                                "ok": bool(sc.ok)},
             "comparisons": [_comparison(c) for c in checks.comparisons],
             "lasers": [_laser(c) for c in checks.lasers],
             "distance": _trend(checks.distance),

@@ -49,6 +49,18 @@ def _comparison_warnings(checks: dict[str, Any]) -> list[dict[str, str]]:
     return out
 
 
+def _scatter_warnings(checks: dict[str, Any]) -> list[dict[str, str]]:
+    sc = checks.get("scatter")
+    if not sc or sc["ok"]:
+        return []
+    return [_w("warning", "scatter_test",
+               f"The {_label(checks['method'])} estimates scatter {sc['ratio']:.1f} times more "
+               f"than their stated sigma (chi2 {sc['chi2']:.0f} for {sc['dof']} degrees of "
+               f"freedom, p = {sc['p']:.2g}): the sigma of the spots, the registration or the "
+               "mesh is understated (blurred, elongated or speckled spots; a mesh off the "
+               "model), or an estimate is wrong.")]
+
+
 def _laser_warnings(checks: dict[str, Any]) -> list[dict[str, str]]:
     bad = [c for c in checks.get("lasers", []) if not c["ok"] and _finite(c["z"])]
     if not bad:
@@ -151,5 +163,5 @@ def model_warnings(report: dict[str, Any]) -> list[dict[str, str]]:
     if not checks or not _finite(report["scale"].get("value")):
         return rig_pair_warnings(report)
     return (rig_pair_warnings(report) + _comparison_warnings(checks) + _laser_warnings(checks)
-            + _distance_warnings(checks)
+            + _scatter_warnings(checks) + _distance_warnings(checks)
             + _focal_warnings(checks, report) + _drift_warnings(checks) + _budget_notes(report))
