@@ -28,14 +28,14 @@ from sfm_laserscale.io.models import load_model
 from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
 from sfm_laserscale.io.spots_csv import read_spots_csv
 from sfm_laserscale.memory import trim_heap
-from sfm_laserscale.mesh_error import check_rays, neighbours, spot_mesh_sigma
 from sfm_laserscale.methods.pcm_joint import (
     PcmJointOptions,
     PcmJointResult,
     estimate_pcm_joint,
 )
 from sfm_laserscale.model import Camera, Pose, SparseModel, Spot
-from sfm_laserscale.model_checks import ModelChecks, run_model_checks
+from sfm_laserscale.model_checks import ModelChecks
+from sfm_laserscale.model_stage import check_model, intrinsics_field, mesh_check_rays, model_inputs
 from sfm_laserscale.provenance import (
     captured_colmap_log,
     captured_log,
@@ -48,13 +48,12 @@ from sfm_laserscale.provenance import (
 from sfm_laserscale.raycast import (
     MeshCrop,
     MeshRaycaster,
-    SpotHit,
     cast_spots,
     crop_for_rays,
     pixel_rays,
     spot_cast_rays,
 )
-from sfm_laserscale.registration.covariance import IntrinsicsField, analyse_intrinsics
+from sfm_laserscale.registration.covariance import IntrinsicsField
 from sfm_laserscale.registration.features import open_model_features
 from sfm_laserscale.registration.index import DescriptorIndex, build_index, select_index_candidates
 from sfm_laserscale.registration.pose import register_image
@@ -203,7 +202,7 @@ def crop_mesh(runs: Sequence[ImageRun], loaded: LoadedInputs,
     the points of the images still estimated: a subset of these."""
     rays = [spot_cast_rays(r.spots, camera, pose, options.spot_cast)
             for r, camera, pose in _views(runs)]
-    rays += [_mesh_check_rays(r, camera, pose, options) for r, camera, pose in _views(runs)]
+    rays += [mesh_check_rays(r, options) for r, _, _ in _views(runs)]
     origins = np.concatenate([o for o, _ in rays]) if rays else np.zeros((0, 3))
     dirs = np.concatenate([d for _, d in rays]) if rays else np.zeros((0, 3))
     if loaded.mesh is None:
@@ -212,17 +211,6 @@ def crop_mesh(runs: Sequence[ImageRun], loaded: LoadedInputs,
     return crop_for_rays(loaded.mesh.vertices, loaded.mesh.triangles, origins, dirs,
                          mesh_check_points(runs, options, loaded.model.extent),
                          replace(options.crop, point_radius=radius))
-
-
-def _mesh_check_rays(run: ImageRun, camera: Camera, pose: Pose, options: ScaleOptions
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """The rays camera -> model points around the spots that the mesh error check casts."""
-    reg = run.registration
-    if not options.mesh_error.enabled or reg is None or not run.spots:
-        return np.zeros((0, 3)), np.zeros((0, 3))
-    xy = np.array([[s.x, s.y] for s in run.spots], dtype=np.float64)
-    return check_rays(pose, reg.inlier_xyz,
-                      neighbours(xy, reg.inlier_xy_px, camera, options.mesh_error))
 
 
 def mesh_check_points(runs: Sequence[ImageRun], options: ScaleOptions,
@@ -276,27 +264,6 @@ def mesh_model_agreement(points: np.ndarray, caster: MeshRaycaster, extent: floa
     return median / max(extent, 1e-12)
 
 
-def _model_error(run: ImageRun, camera: Camera, pose: Pose, hits: tuple[SpotHit, ...],
-                 caster: MeshRaycaster, field: IntrinsicsField | None, options: ScaleOptions
-                 ) -> dict[str, Any]:
-    """The observation's model-error inputs: each hit's mesh σ (with its check) and the model
-    intrinsics' directions (docs/DESIGN.md §4)."""
-    reg = run.registration
-    if reg is None:
-        return {}
-    hit_xyz = np.array([h.hit_world for h in hits], dtype=np.float64).reshape(-1, 3)
-    directions = () if field is None else field.directions(
-        camera, pose, reg.inlier_xy_px, reg.inlier_xyz, hit_xyz)
-    rays = reg.inlier_xyz - pose.center
-    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-300)
-    point_sigma = (np.zeros(len(rays)) if field is None
-                   else field.point_sigma_along(reg.inlier_point3D_ids, rays))
-    checks = spot_mesh_sigma(caster, camera, pose, hits, reg.inlier_xy_px, reg.inlier_xyz,
-                             point_sigma, options.mesh_error)
-    return {"mesh_sigma": np.array([c.sigma for c in checks]), "model_directions": directions,
-            "mesh_errors": checks}
-
-
 def cast_and_estimate(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster,
                       options: ScaleOptions, timer: Timer,
                       field: IntrinsicsField | None = None) -> ImageRun:
@@ -314,16 +281,15 @@ def cast_and_estimate(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster
                "no usable spot hit on the mesh: " + "; ".join(sorted(set(cast.reasons.values()))))
         return replace(run, spot_reasons=spot_reasons, reason=why)
     with timer("estimate"):
-        extra = _model_error(run, camera, pose, cast.hits, caster, field, options)
+        extra = model_inputs(run, cast.hits, caster, field, options)
         obs = ImageObservation(image=run.name, camera=camera, cam_from_world=pose,
                                pose_covariance=run.registration.covariance, hits=cast.hits,
-                               mesh_sigma=extra.get("mesh_sigma"),
-                               model_directions=extra.get("model_directions", ()))
+                               mesh_sigma=extra.mesh_sigma, model_directions=extra.directions)
         est = estimate_image(obs, loaded.rig, options.estimation)
     usable = [e for e in est.estimates if not e.rejected]
     reason = None if usable else "every estimate of this image was rejected"
     return replace(run, hits=cast.hits, spot_reasons=spot_reasons, estimates=est, reason=reason,
-                   observation=obs, mesh_errors=extra.get("mesh_errors", ()))
+                   observation=obs, mesh_errors=extra.mesh_errors)
 
 
 def _observations(runs: Sequence[ImageRun]) -> list[ImageObservation]:
@@ -366,36 +332,6 @@ def fuse_all(runs: Sequence[ImageRun], rig: Rig, options: ScaleOptions) -> Metho
     return MethodFusion(headline, fused, joint)
 
 
-def check_model(fusion: MethodFusion, runs: Sequence[ImageRun], model: SparseModel,
-                field: IntrinsicsField | None, options: ScaleOptions) -> MethodFusion:
-    """The model checks (docs/DESIGN.md §4): the headline's σ widened by a focal error the data
-    show beyond the model's own, and the focal-corrected scale as a method of its own."""
-    if not options.model_checks.enabled or not np.isfinite(fusion.headline.value):
-        return replace(fusion, intrinsics=field)
-    centres = {r.name: pose.center for r, _, pose in _views(runs)}
-    model_centres = np.array([im.cam_from_world.center for im in model.images.values()])
-    checks = run_model_checks([r.estimates for r in runs if r.estimates is not None],
-                              fusion.methods, fusion.headline, fusion.pcm_joint.joint, centres,
-                              model_centres, _model_focal_sigma(runs, field),
-                              options.model_checks, options.fusion)
-    methods = dict(fusion.methods)
-    if checks.focal.corrected is not None:
-        methods[checks.focal.corrected.method] = checks.focal.corrected
-    head = checks.headline
-    methods[head.method] = head
-    return MethodFusion(head, methods, fusion.pcm_joint, checks, field)
-
-
-def _model_focal_sigma(runs: Sequence[ImageRun], field: IntrinsicsField | None) -> float:
-    """σ(δf / f) of the laser images' camera in the model (NaN when not analysed)."""
-    if field is None:
-        return float("nan")
-    ids = [r.camera.camera_id for r in runs if r.estimates is not None and r.camera is not None]
-    cid = max(set(ids), key=ids.count) if ids else None
-    cam = field.cameras.get(cid) if cid is not None else None
-    return float("nan") if cam is None else cam.focal_sigma
-
-
 def register_all(loaded: LoadedInputs, options: ScaleOptions, timer: Timer) -> list[ImageRun]:
     """Detect and register every laser image, in order (SIFT may come from the pool)."""
     runs = []
@@ -431,30 +367,21 @@ def _estimate_all(
     logger.info("mesh cropped to the spots' rays and the check points: %d of %d triangles "
                 "(%.2f %%)", len(crop.triangles), crop.source_triangles, 100 * crop.kept_fraction)
     with timer("estimate"):
-        field = intrinsics_field(inputs, runs, options)
+        field = intrinsics_field(inputs.model, runs, options)
     runs = [cast_and_estimate(r, loaded, caster, options, timer, field) for r in runs]
     for r in runs:
         logger.info("laser image %s: %s", r.name,
                     "estimated" if r.reason is None else f"no estimate ({r.reason})")
-    fusion = check_model(fuse_all(runs, loaded.rig, options), runs, loaded.model, field,
-                         options)
+    fusion = fuse_all(runs, loaded.rig, options)
+    head, methods, model_checks = check_model(fusion.headline, fusion.methods,
+                                              fusion.pcm_joint.joint, runs, loaded.model,
+                                              field, options)
+    fusion = MethodFusion(head, methods, fusion.pcm_joint, model_checks, field)
     checks = {"mesh_model_agreement": mesh_model_agreement(
         mesh_check_points(runs, options, loaded.model.extent), caster, loaded.model.extent,
         lambda: load_mesh(inputs.mesh))}
     logger.info("timings so far: %s", timer.as_dict())
     return loaded, runs, fusion, checks
-
-
-def intrinsics_field(inputs: ScaleInputs, runs: Sequence[ImageRun], options: ScaleOptions
-                     ) -> IntrinsicsField | None:
-    """The model intrinsics' error around the registered laser images' inlier points (the model
-    is read again with its observations: the run dropped them after the index)."""
-    ids = [r.registration.inlier_point3D_ids for r, _, _ in _views(runs)
-           if r.registration is not None]
-    if not ids:
-        return None
-    return analyse_intrinsics(lambda: load_model(inputs.model), np.concatenate(ids),
-                              options.intrinsics)
 
 
 def _provenance_inputs(inputs: ScaleInputs, loaded: LoadedInputs) -> list[Path | None]:
