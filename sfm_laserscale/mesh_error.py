@@ -14,7 +14,16 @@ noise, not the mesh's), the spot's mesh σ is
 
 m is the mesh's local offset (smoothing, a systematic part at that place), ρ its local
 roughness; both stay in σ at full size (one spot sees one place of the mesh, not an average).
-The term is random per spot (different places of the mesh), so fusion averages it over images.
+
+The spots of one image are a few decimetres apart, and a mesh's error is smooth over such
+distances (MVS smoothing, a misfit of the surface): their errors are correlated, so they must not
+average down within the image. :func:`mesh_check` estimates the correlation of two spots at
+distance d from the same points: the semivariogram γ(d) = ½ E[(δ_i − δ_j)²] of the point pairs
+about as far apart (within ``pair_tolerance`` of d), less the points' own noise, against the
+points' mean square S (less their noise): ρ(d) = 1 − γ(d) / S, clipped to [0, 1]; without
+``min_pairs`` such pairs the nearest distances available are used, and with no pairs at all
+ρ = ``default_correlation``. Between images (different places) the term is independent, so
+fusion averages it over images.
 """
 
 from __future__ import annotations
@@ -40,6 +49,9 @@ class MeshErrorOptions:
     max_radius: float = 0.15  # ... within this fraction of the image diagonal
     min_points: int = 5  # fewer points with a mesh hit: no estimate (σ 0, reported)
     clip: float = 5.0  # points beyond this many robust spreads from the median: left out
+    pair_tolerance: float = 0.25  # point pairs within this fraction of the spots' distance
+    min_pairs: int = 20  # fewer such pairs: the nearest distances available
+    default_correlation: float = 1.0  # no point pairs at all: fully correlated (conservative)
 
 
 @dataclass(frozen=True)
@@ -93,16 +105,50 @@ def _one(laser: str, delta: F64, sigma_p: F64, options: MeshErrorOptions) -> Spo
     return SpotMeshError(laser, sigma, m, rho, sp, len(delta))
 
 
-def spot_mesh_sigma(caster: MeshRaycaster, camera: Camera, pose: Pose, hits: Sequence[SpotHit],
-                    inlier_xy: F64, inlier_xyz: F64, point_sigma: F64,
-                    options: MeshErrorOptions) -> tuple[SpotMeshError, ...]:
-    """Each hit's mesh depth σ from the registered image's inlier points around its spot.
+@dataclass(frozen=True)
+class MeshCheck:
+    """An image's mesh check: each spot's σ and the correlation of the spots' mesh errors."""
+
+    spots: tuple[SpotMeshError, ...]
+    correlation: F64  # (K, K)
+
+
+def _correlation(xyz: F64, delta: F64, sigma_p: F64, d: float, options: MeshErrorOptions
+                 ) -> float:
+    """ρ(d) of the mesh error from point pairs about d apart (module docstring)."""
+    ok = np.isfinite(delta)
+    if ok.sum() >= 2:  # points of other surfaces (occlusions) left out, as for each spot
+        med = float(np.median(delta[ok]))
+        rho = 1.4826 * float(np.median(np.abs(delta[ok] - med)))
+        ok &= ~(np.abs(delta - med) > options.clip * rho) if rho > 0 else ok
+    xyz, delta, sigma_p = xyz[ok], delta[ok], sigma_p[ok]
+    if len(delta) < 2:
+        return options.default_correlation
+    i, j = np.triu_indices(len(delta), 1)
+    dist = np.linalg.norm(xyz[i] - xyz[j], axis=1)
+    near = np.abs(dist - d) <= options.pair_tolerance * d
+    if near.sum() < options.min_pairs:
+        near = np.argsort(np.abs(dist - d), kind="stable")[:options.min_pairs]
+    noise = float(np.mean(sigma_p**2))
+    s = float(np.mean(delta**2)) - noise
+    if not s > 0:
+        return options.default_correlation
+    gamma = 0.5 * float(np.mean((delta[i[near]] - delta[j[near]]) ** 2)) - noise
+    return float(np.clip(1.0 - gamma / s, 0.0, 1.0))
+
+
+def mesh_check(caster: MeshRaycaster, camera: Camera, pose: Pose, hits: Sequence[SpotHit],
+               inlier_xy: F64, inlier_xyz: F64, point_sigma: F64, options: MeshErrorOptions
+               ) -> MeshCheck:
+    """Each hit's mesh depth σ from the registered image's inlier points around its spot, and
+    the correlation of the hits' mesh errors.
 
     ``point_sigma`` (N,): the inlier points' σ along their viewing rays (0 where unknown).
     """
+    k = len(hits)
     if not options.enabled or len(inlier_xyz) == 0:
-        return tuple(SpotMeshError(h.laser, 0.0, float("nan"), float("nan"), float("nan"), 0)
-                     for h in hits)
+        return MeshCheck(tuple(SpotMeshError(h.laser, 0.0, float("nan"), float("nan"),
+                                             float("nan"), 0) for h in hits), np.eye(k))
     xy = np.array([np.asarray(h.xy_px, np.float64).reshape(2) for h in hits]).reshape(-1, 2)
     idx = neighbours(xy, inlier_xy, camera, options)
     rows = np.unique(np.concatenate([*idx, np.zeros(0, np.intp)]))
@@ -112,5 +158,22 @@ def spot_mesh_sigma(caster: MeshRaycaster, camera: Camera, pose: Pose, hits: Seq
         res = caster.cast(origins, dirs)
         rng = np.linalg.norm(inlier_xyz[rows] - pose.center, axis=1)
         delta[rows] = np.where(res.hit, res.distance - rng, np.nan)
-    return tuple(_one(h.laser, delta[i], np.asarray(point_sigma, np.float64)[i], options)
-                 for h, i in zip(hits, idx, strict=True))
+    sig_p = np.asarray(point_sigma, np.float64)
+    spots = tuple(_one(h.laser, delta[i], sig_p[i], options)
+                  for h, i in zip(hits, idx, strict=True))
+    corr = np.eye(k)
+    hit_xyz = np.array([np.asarray(h.hit_world, np.float64).reshape(3) for h in hits])
+    for a in range(k):
+        for b in range(a + 1, k):
+            d = float(np.linalg.norm(hit_xyz[a] - hit_xyz[b]))
+            corr[a, b] = corr[b, a] = _correlation(inlier_xyz[rows], delta[rows], sig_p[rows],
+                                                   d, options)
+    return MeshCheck(spots, corr)
+
+
+def spot_mesh_sigma(caster: MeshRaycaster, camera: Camera, pose: Pose, hits: Sequence[SpotHit],
+                    inlier_xy: F64, inlier_xyz: F64, point_sigma: F64,
+                    options: MeshErrorOptions) -> tuple[SpotMeshError, ...]:
+    """Each hit's mesh depth σ (:func:`mesh_check` without the correlation)."""
+    return mesh_check(caster, camera, pose, hits, inlier_xy, inlier_xyz, point_sigma,
+                      options).spots

@@ -368,16 +368,36 @@ def segments(estimates: Sequence[ImageEstimates], points: Sequence[ImagePoint], 
     return tuple(out)
 
 
+def _within_chi2(est: ImageEstimates, method: str) -> tuple[float, int]:
+    """χ² (and dof) of an image's estimates that the estimators accepted (also those fusion
+    left out as inconsistent) about their GLS mean, in 1/s with their full covariance."""
+    ests = est.of(method)
+    keep = [i for i, e in enumerate(ests) if not e.rejected and math.isfinite(e.scale)
+            and math.isfinite(e.sigma) and e.sigma > 0 and e.scale > 0]
+    if len(keep) < 2:
+        return 0.0, 0
+    v = np.array([ests[i].scale for i in keep])
+    d = 1.0 / v**2
+    cov = np.asarray(est.covariance[method])[np.ix_(keep, keep)] * np.outer(d, d)
+    u = 1.0 / v
+    w = np.linalg.pinv(cov, hermitian=True)
+    ones = np.ones(len(u))
+    mean = float(ones @ w @ u) / float(ones @ w @ ones)
+    r = u - mean
+    return max(float(r @ w @ r), 0.0), len(keep) - 1
+
+
 def scatter_test(estimates: Sequence[ImageEstimates], fused: FusedScale, method: str,
                  options: ModelCheckOptions, fusion: FusionOptions) -> ScatterTest | None:
-    """Within-image χ² of the images fusion kept plus the between-image χ², one test."""
+    """Within-image χ² of the images fusion kept (every accepted estimate: a spot fusion left
+    out is evidence too) plus the between-image χ², one test."""
     used = set(fused.images_used)
     chi2, dof = 0.0, 0
     for est in estimates:
-        c = combine_image(est, method, fusion) if est.image in used else None
-        if c is not None and c.dof > 0 and math.isfinite(c.chi2):
-            chi2 += c.chi2
-            dof += c.dof
+        if est.image in used:
+            c, k = _within_chi2(est, method)
+            chi2 += c
+            dof += k
     n = len(used)
     if n > 1 and math.isfinite(fused.birge_ratio):
         chi2 += fused.birge_ratio**2 * (n - 1)

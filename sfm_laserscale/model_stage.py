@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from sfm_laserscale.fusion import FusedScale
 from sfm_laserscale.io.models import load_model
-from sfm_laserscale.mesh_error import SpotMeshError, check_rays, neighbours, spot_mesh_sigma
+from sfm_laserscale.mesh_error import SpotMeshError, check_rays, mesh_check, neighbours
 from sfm_laserscale.model import Camera, Pose, SparseModel
 from sfm_laserscale.model_checks import ModelChecks, run_model_checks
 from sfm_laserscale.model_error import ModelDirection
@@ -61,6 +61,7 @@ class ModelInputs:
     """One observation's model-error inputs (uncertainty.ImageObservation's fields)."""
 
     mesh_sigma: F64 | None = None
+    mesh_correlation: F64 | None = None
     directions: tuple[ModelDirection, ...] = ()
     mesh_errors: tuple[SpotMeshError, ...] = ()
 
@@ -79,9 +80,10 @@ def model_inputs(run: ImageRun, hits: tuple[SpotHit, ...], caster: MeshRaycaster
     rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-300)
     point_sigma = (np.zeros(len(rays)) if field is None
                    else field.point_sigma_along(reg.inlier_point3D_ids, rays))
-    checks = spot_mesh_sigma(caster, camera, pose, hits, reg.inlier_xy_px, reg.inlier_xyz,
-                             point_sigma, options.mesh_error)
-    return ModelInputs(np.array([c.sigma for c in checks]), directions, checks)
+    check = mesh_check(caster, camera, pose, hits, reg.inlier_xy_px, reg.inlier_xyz,
+                       point_sigma, options.mesh_error)
+    return ModelInputs(np.array([c.sigma for c in check.spots]), check.correlation, directions,
+                       check.spots)
 
 
 def focal_sigma(runs: Sequence[ImageRun], field: IntrinsicsField | None) -> float:

@@ -77,6 +77,7 @@ class ImageObservation:
     pose_covariance: F64 | None  # (6, 6) [rot (rad), trans (model units)], left perturbation
     hits: tuple[SpotHit, ...]
     mesh_sigma: F64 | None = None  # (K,) mesh depth σ along each hit's ray, model units
+    mesh_correlation: F64 | None = None  # (K, K) correlation of the hits' mesh errors (None: I)
     model_directions: tuple[ModelDirection, ...] = ()  # the model intrinsics' directions
 
 
@@ -210,6 +211,7 @@ class _Layout:
     rig_sigma: F64  # (4 nb,)
     mesh_sigma: F64  # (K,) model units along each hit's ray
     ray_world: F64  # (K, 3) unit world directions of the spots' rays
+    mesh_sqrt: F64  # (K, r) square root of the hits' mesh covariance (model units)
 
     @property
     def n_out(self) -> int:
@@ -250,22 +252,38 @@ def _beams(rig: Rig, options: EstimationOptions) -> tuple[_Beams, F64]:
     return beams, sigma
 
 
-def _mesh_inputs(obs: ImageObservation, hw: F64) -> tuple[F64, F64]:
-    """(K,) mesh depth σ (0 when not given) and (K, 3) unit world rays camera -> hit."""
-    k = len(hw)
-    sig = np.zeros(k) if obs.mesh_sigma is None else np.asarray(obs.mesh_sigma, np.float64)
-    if sig.shape != (k,) or np.any(~np.isfinite(sig)) or np.any(sig < 0):
-        raise InputError(f"image {obs.image}: mesh sigma must be {k} finite values >= 0")
+def mesh_sqrt(obs: ImageObservation, order: list[int] | None = None) -> tuple[F64, F64]:
+    """(K,) mesh depth σ of the hits (0 when not given; ``order``: these hits) and (K, r) the
+    square root of their covariance diag(σ) R diag(σ), R = ``mesh_correlation`` (I if None)."""
+    n = len(obs.hits)
+    sig = np.zeros(n) if obs.mesh_sigma is None else np.asarray(obs.mesh_sigma, np.float64)
+    corr = np.eye(n) if obs.mesh_correlation is None else np.asarray(obs.mesh_correlation,
+                                                                      np.float64)
+    if (sig.shape != (n,) or np.any(~np.isfinite(sig)) or np.any(sig < 0)
+            or corr.shape != (n, n) or not np.all(np.isfinite(corr))):
+        raise InputError(f"image {obs.image}: mesh sigma must be {n} finite values >= 0 (and "
+                         f"its correlation a finite {n}×{n} matrix)")
+    idx = list(range(n)) if order is None else order
+    sig, corr = sig[idx], corr[np.ix_(idx, idx)]
+    cov = np.outer(sig, sig) * (0.5 * (corr + corr.T))
+    vals, vecs = np.linalg.eigh(cov)
+    keep = vals > 1e-12 * max(float(vals.max(initial=0.0)), 1e-300)
+    return sig, np.asarray(vecs[:, keep] * np.sqrt(vals[keep]), dtype=np.float64)
+
+
+def _mesh_inputs(obs: ImageObservation, hw: F64) -> tuple[F64, F64, F64]:
+    """(K,) mesh depth σ, (K, r) square root of its covariance, (K, 3) unit world rays."""
+    sig, root = mesh_sqrt(obs)
     rays = hw - obs.cam_from_world.center
     with np.errstate(divide="ignore", invalid="ignore"):
         rays = rays / np.linalg.norm(rays, axis=1, keepdims=True)
-    return sig, np.nan_to_num(rays)
+    return sig, root, np.nan_to_num(rays)
 
 
 def _layout(obs: ImageObservation, rig: Rig, options: EstimationOptions) -> _Layout:
     """Index the observation's hits against the rig: FCM lasers, PCM pairs, rig σ."""
     names, xy, sig, hw, nw = _hit_arrays(obs, rig)
-    mesh_sigma, rays = _mesh_inputs(obs, hw)
+    mesh_sigma, root, rays = _mesh_inputs(obs, hw)
     beams, rig_sigma = _beams(rig, options)
     fcm = [(j, names.index(n)) for j, n in enumerate(beams.names) if n in names]
     pairs = [p for p in rig.pairs if p.lasers[0] in names and p.lasers[1] in names]
@@ -279,7 +297,8 @@ def _layout(obs: ImageObservation, rig: Rig, options: EstimationOptions) -> _Lay
         tuple(f"{p.lasers[0]}+{p.lasers[1]}" for p in pairs),
         np.array([[names.index(n) for n in p.lasers] for p in pairs], np.intp).reshape(-1, 2),
         np.array([[beam(n) for n in p.lasers] for p in pairs], np.intp).reshape(-1, 2),
-        np.array([p.separation for p in pairs], dtype=np.float64), rig_sigma, mesh_sigma, rays)
+        np.array([p.separation for p in pairs], dtype=np.float64), rig_sigma, mesh_sigma, rays,
+        root)
 
 
 def _hits_cam(lay: _Layout, camera: Camera, dpx: F64, R: F64, t: F64,
@@ -362,21 +381,21 @@ def _directions(lay: _Layout, pose_sqrt: F64) -> tuple[F64, NDArray[np.intp]]:
     """(P, n) input-space σ directions and, per direction, its rig parameter index (>= 0) or its
     random term's code (``_SPOTS``, ``_POSE``, ``_MESH``).
 
-    Inputs are ordered [spot pixels (2 per hit), pose (6), mesh (1 per hit), rig (4 per
-    calibrated laser)]; directions of zero σ are dropped.
+    Inputs are ordered [spot pixels (2 per hit), pose (6), mesh (1 per hit, correlated within
+    the image), rig (4 per calibrated laser)]; directions of zero σ are dropped.
     """
     k, r, m = len(lay.names), len(lay.rig_sigma), pose_sqrt.shape[1]
     px_sigma = np.repeat(lay.sigma_px, 2)
     px = np.flatnonzero(px_sigma > 0)
-    mesh = np.flatnonzero(lay.mesh_sigma > 0)
+    q = lay.mesh_sqrt.shape[1]
     rig = np.flatnonzero(lay.rig_sigma > 0)
-    n_rand = len(px) + m + len(mesh)
+    n_rand = len(px) + m + q
     d = np.zeros((3 * k + 6 + r, n_rand + len(rig)))
     d[px, np.arange(len(px))] = px_sigma[px]
     d[2 * k:2 * k + 6, len(px):len(px) + m] = pose_sqrt
-    d[2 * k + 6 + mesh, len(px) + m + np.arange(len(mesh))] = lay.mesh_sigma[mesh]
+    d[2 * k + 6:3 * k + 6, len(px) + m:n_rand] = lay.mesh_sqrt
     d[3 * k + 6 + rig, n_rand + np.arange(len(rig))] = lay.rig_sigma[rig]
-    codes = [np.full(len(px), _SPOTS), np.full(m, _POSE), np.full(len(mesh), _MESH), rig]
+    codes = [np.full(len(px), _SPOTS), np.full(m, _POSE), np.full(q, _MESH), rig]
     return d, np.concatenate(codes).astype(np.intp)
 
 

@@ -264,3 +264,53 @@ def test_mesh_check_measures_an_offset_mesh_and_removes_point_noise() -> None:
     few = spot_mesh_sigma(_plane_mesh(0.0), CAMERA, pose, (hit,), px[:3], pts[:3],
                           np.zeros(3), opts)[0]
     assert few.sigma == 0.0 and few.n_points == 3
+
+
+def _grid_mesh(heights: np.ndarray, size: float = 2.0) -> MeshRaycaster:
+    """A height-field mesh over [-size, size]² with the given (n, n) vertex heights."""
+    n = heights.shape[0]
+    g = np.linspace(-size, size, n)
+    xx, yy = np.meshgrid(g, g, indexing="ij")
+    v = np.column_stack([xx.ravel(), yy.ravel(), heights.ravel()])
+    idx = np.arange(n * n).reshape(n, n)
+    a, b = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel()
+    c, d = idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    tris = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    return MeshRaycaster(v, tris)
+
+
+def test_mesh_errors_of_an_image_are_correlated_as_the_mesh_is() -> None:
+    """Two spots 0.3 m apart: a mesh off by one smooth offset gives ρ ≈ 1 (they must not average
+    down); a mesh whose error changes every 2 cm gives ρ ≈ 0."""
+    from sfm_laserscale.mesh_error import mesh_check
+
+    rng = np.random.default_rng(6)
+    pose = nadir_pose(0.0, 0.0)
+    pts = np.column_stack([rng.uniform(-1.0, 1.0, (600, 2)), np.zeros(600)])
+    pts[:, 2] += rng.normal(scale=0.001, size=len(pts))
+    px = CAMERA.project(pose.transform(pts))
+    hits = tuple(SpotHit(f"L{i}", CAMERA.project(pose.transform(np.array([[x, 0.0, 0.0]])))[0],
+                         0.3, np.array([x, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]))
+                 for i, x in enumerate((-0.15, 0.15)))
+    opts = MeshErrorOptions(neighbours=150, max_radius=0.3)
+    sig = np.full(len(pts), 0.001)
+    smooth = mesh_check(_grid_mesh(np.full((201, 201), -0.01)), CAMERA, pose, hits, px, pts, sig,
+                        opts)
+    assert smooth.correlation[0, 1] > 0.9
+    assert all(s.sigma == pytest.approx(0.01, rel=0.15) for s in smooth.spots)
+    rough = mesh_check(_grid_mesh(rng.normal(scale=0.01, size=(201, 201))), CAMERA, pose, hits,
+                       px, pts, sig, opts)
+    assert rough.correlation[0, 1] < 0.3
+    # the estimators see it: two FCM lasers on one image do not average their mesh error down
+    rig = rig_from_dict({"name": "two", "laser": [
+        {"name": "L0", "origin": [-0.15, 0.0, 0.0], "direction": [0.0, 0.0, 1.0]},
+        {"name": "L1", "origin": [0.15, 0.0, 0.0], "direction": [0.0, 0.0, 1.0]}]})
+    exact = tuple(replace(h, sigma_px=0.0) for h in hits)  # the mesh term alone
+    obs = ImageObservation("im", CAMERA, pose, None, exact, np.array([0.01, 0.01]))
+    from sfm_laserscale.fusion import combine_image
+
+    indep = combine_image(estimate_image(obs, rig, OPTS), "fcm", FusionOptions())
+    corr = combine_image(estimate_image(replace(obs, mesh_correlation=np.ones((2, 2))), rig, OPTS),
+                         "fcm", FusionOptions())
+    assert indep is not None and corr is not None
+    assert corr.sigma_random == pytest.approx(np.sqrt(2) * indep.sigma_random, rel=0.02)

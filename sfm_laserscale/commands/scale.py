@@ -284,7 +284,8 @@ def cast_and_estimate(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster
         extra = model_inputs(run, cast.hits, caster, field, options)
         obs = ImageObservation(image=run.name, camera=camera, cam_from_world=pose,
                                pose_covariance=run.registration.covariance, hits=cast.hits,
-                               mesh_sigma=extra.mesh_sigma, model_directions=extra.directions)
+                               mesh_sigma=extra.mesh_sigma, model_directions=extra.directions,
+                               mesh_correlation=extra.mesh_correlation)
         est = estimate_image(obs, loaded.rig, options.estimation)
     usable = [e for e in est.estimates if not e.rejected]
     reason = None if usable else "every estimate of this image was rejected"

@@ -25,7 +25,6 @@ from scipy import stats
 
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.fusion import FusedScale, FusionOptions, error_budget, fuse, interval
-from sfm_laserscale.raycast import SpotHit
 from sfm_laserscale.rig import Pair, Rig
 from sfm_laserscale.rig_checks import refused_pairs
 from sfm_laserscale.uncertainty import (
@@ -33,6 +32,7 @@ from sfm_laserscale.uncertainty import (
     EstimationOptions,
     ImageObservation,
     estimate_image,
+    mesh_sqrt,
     perturb_poses,
     perturbed_observation,
     pose_sqrt,
@@ -144,13 +144,13 @@ def _image_data(obs: ImageObservation, rig: Rig, h: float) -> _ImageData | None:
         nw = nw / np.linalg.norm(nw, axis=1, keepdims=True)
     px_sigma = np.repeat([float(x.sigma_px) for x in hits], 2)
     root = pose_sqrt(obs)
-    mesh = _mesh_sigma(obs, hits)
-    m = root.shape[1]
-    d = np.zeros((3 * k + 6, 3 * k + m))
+    _, mesh = mesh_sqrt(obs, [obs.hits.index(h) for h in hits])  # (k, q), correlated
+    m, q = root.shape[1], mesh.shape[1]
+    d = np.zeros((3 * k + 6, 2 * k + m + q))
     d[np.arange(2 * k), np.arange(2 * k)] = px_sigma
     d[2 * k:2 * k + 6, 2 * k:2 * k + m] = root
-    d[2 * k + 6 + np.arange(k), 2 * k + m + np.arange(k)] = mesh
-    terms = np.array(["spots"] * (2 * k) + ["pose"] * m + ["mesh"] * k)
+    d[2 * k + 6:, 2 * k + m:] = mesh
+    terms = np.array(["spots"] * (2 * k) + ["pose"] * m + ["mesh"] * q)
     keep = np.any(d != 0, axis=0)
     d, terms = d[:, keep], terms[keep]
     deltas = np.vstack([np.zeros(3 * k + 6), h * d.T, -h * d.T])  # row 0 nominal
@@ -170,14 +170,6 @@ def _image_data(obs: ImageObservation, rig: Rig, h: float) -> _ImageData | None:
     sens = (x[1:1 + n] - x[1 + n:]).reshape(n, 3 * k).T / (2 * h)
     return _ImageData(obs.image, tuple(x.laser for x in hits), x[0], n_c[0], cos_inc, sens,
                       terms)
-
-
-def _mesh_sigma(obs: ImageObservation, hits: Sequence[SpotHit]) -> F64:
-    """(K,) mesh depth σ of the pair lasers' hits (0 where the observation gives none)."""
-    if obs.mesh_sigma is None:
-        return np.zeros(len(hits))
-    by = {h.laser: float(s) for h, s in zip(obs.hits, obs.mesh_sigma, strict=True)}
-    return np.array([by[h.laser] for h in hits], dtype=np.float64)
 
 
 def _hits_cam(obs: ImageObservation, rig: Rig) -> tuple[tuple[str, ...], F64]:

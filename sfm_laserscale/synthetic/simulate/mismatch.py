@@ -7,8 +7,9 @@ one model (one focal error, one mesh, one rig error). Per view: model points on 
 (with their own noise; the model's stretch when its focal is off), pixels from the true camera
 with σ_f and 10 % outliers → ``estimate_pose`` with the model's camera → true spots of the true
 rig + the setting's spot errors → ``cast_spots`` on the model's mesh → the mesh check
-(``spot_mesh_sigma``) and, when the estimator is told a focal σ, the intrinsics directions
-(``analyse_intrinsics`` on a synthetic nadir survey of the scene, once per told σ) →
+(``mesh_check``: each spot's σ and their correlation) and, when the estimator is told a focal
+σ, the intrinsics directions (``analyse_intrinsics`` on a synthetic nadir survey of the scene,
+once per told σ) →
 ``estimate_image`` with the told rig. Then ``fuse`` per method and ``run_model_checks``: the
 headline is FCM (checks may widen its σ), the truth the true scale (the survey's cameras, hence
 the model's lateral scale, are unchanged by the focal stretch).
@@ -26,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sfm_laserscale.fusion import FusionOptions, fuse
-from sfm_laserscale.mesh_error import MeshErrorOptions, spot_mesh_sigma
+from sfm_laserscale.mesh_error import MeshErrorOptions, mesh_check
 from sfm_laserscale.model import Camera, Image, Pose, SparseModel, Spot
 from sfm_laserscale.model_checks import ModelCheckOptions, ModelChecks, run_model_checks
 from sfm_laserscale.raycast import MeshRaycaster, SpotCastOptions, cast_spots, pixel_rays
@@ -249,12 +250,12 @@ def _view(world: _World, model: _Model, m: Mismatch, true_rig: Any, told_rig: An
         return None
     in_xy, in_xyz = xy[reg.inlier_mask], xyz[reg.inlier_mask]
     sig_p = np.full(len(in_xyz), options.point_sigma_m / options.true_scale)
-    mesh = spot_mesh_sigma(model.caster, model.camera, pose, cast.hits, in_xy, in_xyz, sig_p,
-                           options.mesh_error)
+    mesh = mesh_check(model.caster, model.camera, pose, cast.hits, in_xy, in_xyz, sig_p,
+                      options.mesh_error)
     hits = np.array([h.hit_world for h in cast.hits])
     dirs = () if field_ is None else field_.directions(model.camera, pose, in_xy, in_xyz, hits)
     obs = ImageObservation(name, model.camera, pose, reg.covariance, cast.hits,
-                           np.array([x.sigma for x in mesh]), dirs)
+                           np.array([x.sigma for x in mesh.spots]), mesh.correlation, dirs)
     return estimate(obs, told_rig, options.estimation), pose.center
 
 
