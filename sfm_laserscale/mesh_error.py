@@ -23,7 +23,11 @@ about as far apart (within ``pair_tolerance`` of d), less the points' own noise,
 points' mean square S (less their noise): ρ(d) = 1 − γ(d) / S, clipped to [0, 1]; without
 ``min_pairs`` such pairs the nearest distances available are used, and with no pairs at all
 ρ = ``default_correlation``. Between images (different places) the term is independent, so
-fusion averages it over images.
+fusion averages it over images — except for the part every place shares: a mesh offset from
+its points over the whole survey (:func:`shared_offset`: g, the mean of every spot's local
+offset m, with its standard error), a shared term like the rig's. The spots then keep the rest,
+σ_local² = (m − g)² + max(ρ² − median(σ_p)², 0), and the shared term is √(g² + se²) along every
+spot's ray (``model_error.mesh_offset_direction``).
 """
 
 from __future__ import annotations
@@ -169,6 +173,37 @@ def mesh_check(caster: MeshRaycaster, camera: Camera, pose: Pose, hits: Sequence
             corr[a, b] = corr[b, a] = _correlation(inlier_xyz[rows], delta[rows], sig_p[rows],
                                                    d, options)
     return MeshCheck(spots, corr)
+
+
+@dataclass(frozen=True)
+class SharedOffset:
+    """The mesh's offset from its points common to every spot of the run (model units)."""
+
+    offset: float  # g, the mean of the spots' local offsets
+    stderr: float  # its standard error
+    n_spots: int
+
+    @property
+    def sigma(self) -> float:
+        """σ of the shared term: √(g² + se²)."""
+        return float(np.hypot(self.offset, self.stderr)) if self.n_spots else 0.0
+
+
+def shared_offset(spots: Sequence[SpotMeshError]) -> SharedOffset:
+    """g and its standard error from every spot's local offset (spots with an estimate)."""
+    m = np.array([s.offset for s in spots if s.n_points > 0 and np.isfinite(s.offset)])
+    if len(m) == 0:
+        return SharedOffset(0.0, 0.0, 0)
+    se = float(np.std(m, ddof=1) / np.sqrt(len(m))) if len(m) > 1 else float(abs(m[0]))
+    return SharedOffset(float(np.mean(m)), se, len(m))
+
+
+def local_sigma(spot: SpotMeshError, shared: SharedOffset | None) -> float:
+    """The spot's mesh σ without the shared offset: √((m − g)² + max(ρ² − σ_p², 0))."""
+    if shared is None or shared.n_spots == 0 or spot.n_points == 0:
+        return spot.sigma
+    rest = max(spot.sigma**2 - spot.offset**2, 0.0)
+    return float(np.sqrt((spot.offset - shared.offset) ** 2 + rest))
 
 
 def spot_mesh_sigma(caster: MeshRaycaster, camera: Camera, pose: Pose, hits: Sequence[SpotHit],

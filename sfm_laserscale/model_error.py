@@ -51,14 +51,29 @@ class ModelDirection:
     in_sigma: bool = True
 
 
+#: Name of the shared mesh offset's direction (mesh_error.shared_offset).
+MESH_OFFSET = "mesh.offset"
+
+
 def term_of(param: str) -> str:
-    """The budget term of a systematic parameter name: ``rig`` or ``intrinsics``."""
-    return "intrinsics" if param.startswith("camera") else "rig"
+    """The budget term of a shared parameter name: ``intrinsics``, ``mesh`` or ``rig``."""
+    if param.startswith("camera"):
+        return "intrinsics"
+    return "mesh" if param.startswith("mesh.") else "rig"
+
+
+def mesh_offset_direction(sigma: float, rays_world: F64) -> ModelDirection:
+    """The shared mesh offset (σ model units) as a direction: every hit moved along its ray."""
+    rays = np.asarray(rays_world, dtype=np.float64).reshape(-1, 3)
+    return ModelDirection(MESH_OFFSET, np.zeros(0), np.zeros(6), sigma * rays, True)
 
 
 def perturbed_camera(camera: Camera, dparams: F64, h: float) -> Camera:
-    """The camera with ``params + h · dparams``."""
-    params = np.asarray(camera.params, dtype=np.float64) + h * np.asarray(dparams, np.float64)
+    """The camera with ``params + h · dparams`` (an empty dparams: unchanged)."""
+    d = np.asarray(dparams, np.float64)
+    if d.size == 0:
+        return camera
+    params = np.asarray(camera.params, dtype=np.float64) + h * d
     return Camera(camera.camera_id, camera.model, camera.width, camera.height, params)
 
 

@@ -9,17 +9,26 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from sfm_laserscale.fusion import FusedScale
 from sfm_laserscale.io.models import load_model
-from sfm_laserscale.mesh_error import SpotMeshError, check_rays, mesh_check, neighbours
+from sfm_laserscale.mesh_error import (
+    SharedOffset,
+    SpotMeshError,
+    check_rays,
+    local_sigma,
+    mesh_check,
+    neighbours,
+    shared_offset,
+)
 from sfm_laserscale.model import Camera, Pose, SparseModel
 from sfm_laserscale.model_checks import ModelChecks, run_model_checks
-from sfm_laserscale.model_error import ModelDirection
-from sfm_laserscale.raycast import MeshRaycaster, SpotHit
+from sfm_laserscale.model_error import ModelDirection, mesh_offset_direction
+from sfm_laserscale.raycast import MeshRaycaster, SpotHit, cast_spots
 from sfm_laserscale.registration.covariance import IntrinsicsField, analyse_intrinsics
 from sfm_laserscale.run_types import ImageRun, ScaleOptions
 
@@ -66,24 +75,54 @@ class ModelInputs:
     mesh_errors: tuple[SpotMeshError, ...] = ()
 
 
-def model_inputs(run: ImageRun, hits: tuple[SpotHit, ...], caster: MeshRaycaster,
-                 field: IntrinsicsField | None, options: ScaleOptions) -> ModelInputs:
-    """Each hit's mesh σ (with its check) and the model intrinsics' directions of one image."""
+def _check(run: ImageRun, hits: tuple[SpotHit, ...], caster: MeshRaycaster,
+           field: IntrinsicsField | None, options: ScaleOptions) -> tuple[Camera, Pose, Any]:
+    """The mesh check of one registered image's hits."""
     view, reg = _registered(run), run.registration
     if view is None or reg is None:
-        return ModelInputs()
+        raise ValueError(f"image {run.name}: the mesh check needs a registered image")
     camera, pose = view
-    hit_xyz = np.array([h.hit_world for h in hits], dtype=np.float64).reshape(-1, 3)
-    directions = () if field is None else field.directions(
-        camera, pose, reg.inlier_xy_px, reg.inlier_xyz, hit_xyz)
     rays = reg.inlier_xyz - pose.center
     rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-300)
     point_sigma = (np.zeros(len(rays)) if field is None
                    else field.point_sigma_along(reg.inlier_point3D_ids, rays))
-    check = mesh_check(caster, camera, pose, hits, reg.inlier_xy_px, reg.inlier_xyz,
-                       point_sigma, options.mesh_error)
-    return ModelInputs(np.array([c.sigma for c in check.spots]), check.correlation, directions,
-                       check.spots)
+    return camera, pose, mesh_check(caster, camera, pose, hits, reg.inlier_xy_px, reg.inlier_xyz,
+                                    point_sigma, options.mesh_error)
+
+
+def shared_mesh_offset(runs: Sequence[ImageRun], caster: MeshRaycaster,
+                       field: IntrinsicsField | None, options: ScaleOptions) -> SharedOffset:
+    """The mesh's offset from its points common to every spot of the run (a first pass of the
+    mesh check over the registered images: mesh_error.shared_offset)."""
+    spots: list[SpotMeshError] = []
+    for r in runs:
+        view = _registered(r)
+        if r.reason is not None or view is None or not r.spots or not options.mesh_error.enabled:
+            continue
+        cast = cast_spots(r.spots, view[0], view[1], caster, options.spot_cast)
+        if cast.hits:
+            spots += _check(r, cast.hits, caster, field, options)[2].spots
+    return shared_offset(spots)
+
+
+def model_inputs(run: ImageRun, hits: tuple[SpotHit, ...], caster: MeshRaycaster,
+                 field: IntrinsicsField | None, options: ScaleOptions,
+                 shared: SharedOffset | None = None) -> ModelInputs:
+    """Each hit's mesh σ (with its check; the ``shared`` offset apart, as a direction common to
+    every image) and the model intrinsics' directions of one image."""
+    view, reg = _registered(run), run.registration
+    if view is None or reg is None:
+        return ModelInputs()
+    hit_xyz = np.array([h.hit_world for h in hits], dtype=np.float64).reshape(-1, 3)
+    camera, pose, check = _check(run, hits, caster, field, options)
+    directions = () if field is None else field.directions(
+        camera, pose, reg.inlier_xy_px, reg.inlier_xyz, hit_xyz)
+    if shared is not None and shared.sigma > 0:
+        rays = hit_xyz - pose.center
+        rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-300)
+        directions = (*directions, mesh_offset_direction(shared.sigma, rays))
+    sigma = np.array([local_sigma(c, shared) for c in check.spots])
+    return ModelInputs(sigma, check.correlation, directions, check.spots)
 
 
 def focal_sigma(runs: Sequence[ImageRun], field: IntrinsicsField | None) -> float:

@@ -28,6 +28,7 @@ from sfm_laserscale.io.models import load_model
 from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
 from sfm_laserscale.io.spots_csv import read_spots_csv
 from sfm_laserscale.memory import trim_heap
+from sfm_laserscale.mesh_error import SharedOffset
 from sfm_laserscale.methods.pcm_joint import (
     PcmJointOptions,
     PcmJointResult,
@@ -35,7 +36,13 @@ from sfm_laserscale.methods.pcm_joint import (
 )
 from sfm_laserscale.model import Camera, Pose, SparseModel, Spot
 from sfm_laserscale.model_checks import ModelChecks
-from sfm_laserscale.model_stage import check_model, intrinsics_field, mesh_check_rays, model_inputs
+from sfm_laserscale.model_stage import (
+    check_model,
+    intrinsics_field,
+    mesh_check_rays,
+    model_inputs,
+    shared_mesh_offset,
+)
 from sfm_laserscale.provenance import (
     captured_colmap_log,
     captured_log,
@@ -266,7 +273,8 @@ def mesh_model_agreement(points: np.ndarray, caster: MeshRaycaster, extent: floa
 
 def cast_and_estimate(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster,
                       options: ScaleOptions, timer: Timer,
-                      field: IntrinsicsField | None = None) -> ImageRun:
+                      field: IntrinsicsField | None = None,
+                      mesh_offset: SharedOffset | None = None) -> ImageRun:
     """Cast the spots of a registered image into the mesh and estimate the scale (with the
     model's own error: the mesh's at each spot, the intrinsics' in ``field``)."""
     view = _view(run)
@@ -281,7 +289,7 @@ def cast_and_estimate(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster
                "no usable spot hit on the mesh: " + "; ".join(sorted(set(cast.reasons.values()))))
         return replace(run, spot_reasons=spot_reasons, reason=why)
     with timer("estimate"):
-        extra = model_inputs(run, cast.hits, caster, field, options)
+        extra = model_inputs(run, cast.hits, caster, field, options, mesh_offset)
         obs = ImageObservation(image=run.name, camera=camera, cam_from_world=pose,
                                pose_covariance=run.registration.covariance, hits=cast.hits,
                                mesh_sigma=extra.mesh_sigma, model_directions=extra.directions,
@@ -369,7 +377,8 @@ def _estimate_all(
                 "(%.2f %%)", len(crop.triangles), crop.source_triangles, 100 * crop.kept_fraction)
     with timer("estimate"):
         field = intrinsics_field(inputs.model, runs, options)
-    runs = [cast_and_estimate(r, loaded, caster, options, timer, field) for r in runs]
+        offset = shared_mesh_offset(runs, caster, field, options)
+    runs = [cast_and_estimate(r, loaded, caster, options, timer, field, offset) for r in runs]
     for r in runs:
         logger.info("laser image %s: %s", r.name,
                     "estimated" if r.reason is None else f"no estimate ({r.reason})")

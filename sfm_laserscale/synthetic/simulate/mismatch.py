@@ -27,9 +27,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sfm_laserscale.fusion import FusionOptions, fuse
-from sfm_laserscale.mesh_error import MeshErrorOptions, mesh_check
+from sfm_laserscale.mesh_error import (
+    MeshCheck,
+    MeshErrorOptions,
+    SharedOffset,
+    local_sigma,
+    mesh_check,
+    shared_offset,
+)
 from sfm_laserscale.model import Camera, Image, Pose, SparseModel, Spot
 from sfm_laserscale.model_checks import ModelCheckOptions, ModelChecks, run_model_checks
+from sfm_laserscale.model_error import ModelDirection, mesh_offset_direction
 from sfm_laserscale.raycast import MeshRaycaster, SpotCastOptions, cast_spots, pixel_rays
 from sfm_laserscale.registration.covariance import (
     IntrinsicsField,
@@ -225,10 +233,19 @@ def _features(world: _World, model: _Model, true_pose: Pose, options: MismatchOp
     return px, metric / k
 
 
-def _view(world: _World, model: _Model, m: Mismatch, true_rig: Any, told_rig: Any,
-          field_: IntrinsicsField | None, options: MismatchOptions, rng: np.random.Generator,
-          name: str) -> tuple[ImageEstimates, F64] | None:
-    """One laser image of the survey: its estimates and camera centre (None: nothing)."""
+@dataclass(frozen=True)
+class _Seen:
+    """One laser image of a survey before its estimates: observation and mesh check."""
+
+    obs: ImageObservation
+    check: MeshCheck
+    inliers: tuple[F64, F64]  # pixels, model points
+
+
+def _view(world: _World, model: _Model, m: Mismatch, true_rig: Any,
+          options: MismatchOptions, rng: np.random.Generator, name: str) -> _Seen | None:
+    """One laser image of the survey: registered, its spots cast, its mesh checked (None:
+    nothing usable)."""
     true_pose = _random_pose(world, options, rng)
     if true_pose is None:
         return None
@@ -252,11 +269,25 @@ def _view(world: _World, model: _Model, m: Mismatch, true_rig: Any, told_rig: An
     sig_p = np.full(len(in_xyz), options.point_sigma_m / options.true_scale)
     mesh = mesh_check(model.caster, model.camera, pose, cast.hits, in_xy, in_xyz, sig_p,
                       options.mesh_error)
-    hits = np.array([h.hit_world for h in cast.hits])
-    dirs = () if field_ is None else field_.directions(model.camera, pose, in_xy, in_xyz, hits)
-    obs = ImageObservation(name, model.camera, pose, reg.covariance, cast.hits,
-                           np.array([x.sigma for x in mesh.spots]), mesh.correlation, dirs)
-    return estimate(obs, told_rig, options.estimation), pose.center
+    obs = ImageObservation(name, model.camera, pose, reg.covariance, cast.hits)
+    return _Seen(obs, mesh, (in_xy, in_xyz))
+
+
+def _estimate(seen: _Seen, shared: SharedOffset, told_rig: Any,
+              field_: IntrinsicsField | None, options: MismatchOptions) -> ImageEstimates:
+    """The image's estimates with its model error: local mesh σ, the shared mesh offset and the
+    intrinsics directions."""
+    obs = seen.obs
+    hits = np.array([h.hit_world for h in obs.hits])
+    dirs: tuple[ModelDirection, ...] = () if field_ is None else field_.directions(
+        obs.camera, obs.cam_from_world, *seen.inliers, hits)
+    if shared.sigma > 0:
+        rays = hits - obs.cam_from_world.center
+        dirs = (*dirs, mesh_offset_direction(
+            shared.sigma, rays / np.linalg.norm(rays, axis=1, keepdims=True)))
+    obs = replace(obs, mesh_sigma=np.array([local_sigma(x, shared) for x in seen.check.spots]),
+                  mesh_correlation=seen.check.correlation, model_directions=dirs)
+    return estimate(obs, told_rig, options.estimation)
 
 
 def _flags(checks: ModelChecks, inflated: bool) -> dict[str, bool]:
@@ -282,12 +313,11 @@ def run_survey(world: _World, m: Mismatch, index: int, options: MismatchOptions
     model = _model(world, m, eps, options, rng)
     true_rig, told_rig = rigs(config_rig(options.config), m, rng)
     field_ = world.fields.get(m.told_focal_sigma)
-    ests, centres = [], {}
-    for v in range(options.views):
-        got = _view(world, model, m, true_rig, told_rig, field_, options, rng, f"v{v}")
-        if got is not None:
-            ests.append(got[0])
-            centres[got[0].image] = got[1]
+    seen = [s for s in (_view(world, model, m, true_rig, options, rng, f"v{v}")
+                        for v in range(options.views)) if s is not None]
+    shared = shared_offset([x for s in seen for x in s.check.spots])
+    ests = [_estimate(s, shared, told_rig, field_, options) for s in seen]
+    centres = {s.obs.image: s.obs.cam_from_world.center for s in seen}
     methods = {meth: fuse(ests, meth, options.fusion) for meth in ("fcm", "pcm")}
     head = methods["fcm"]
     if not math.isfinite(head.value):
