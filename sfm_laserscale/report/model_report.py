@@ -15,6 +15,7 @@ import numpy as np
 
 from sfm_laserscale.focal_fit import FocalEstimate
 from sfm_laserscale.fusion import FusedScale
+from sfm_laserscale.mesh_error import shared_offset
 from sfm_laserscale.model_checks import Comparison, LaserCheck, ModelChecks, Segment, Trend
 from sfm_laserscale.registration.covariance import IntrinsicsField
 from sfm_laserscale.rig import Rig
@@ -129,8 +130,11 @@ def model_error_dict(field: IntrinsicsField | None, runs: Sequence[ImageRun], sc
               "point_sigma_m": _num(m.point_sigma * k), "n_points": m.n_points}
              for r in runs for m in r.mesh_errors]
     sig = [float(m.sigma * k) for r in runs for m in r.mesh_errors if math.isfinite(m.sigma * k)]
+    shared = shared_offset([m for r in runs for m in r.mesh_errors])
     return {"intrinsics": intr,
-            "mesh": {"spots": spots, "median_sigma_m": _num(np.median(sig)) if sig else None}}
+            "mesh": {"spots": spots, "median_sigma_m": _num(np.median(sig)) if sig else None,
+                     "shared_offset_m": _num(shared.offset * k) if shared.n_spots else None,
+                     "shared_sigma_m": _num(shared.sigma * k) if shared.n_spots else None}}
 
 
 def pair_checks_dict(rig: Rig) -> list[dict[str, Any]]:
