@@ -329,14 +329,18 @@ class _SimulateCommand(GreedyCommand):
 
 @main.command(cls=_SimulateCommand)
 @click.option("--out", required=True, type=_path, help="Output folder (created).")
-@click.option("--mode", type=click.Choice(["grid", "random", "noise-table"]), default="grid",
-              show_default=True, help="grid: pitch x roll -40..40 deg in 5 deg steps over a "
-              "smooth and a rough area; random: random surface points and view angles; "
-              "noise-table: camera above the smooth area, every sigma_f x sigma_l x distance.")
-@click.option("--config", "configs", multiple=True, type=click.Choice(["A", "B", "C"]),
+@click.option("--mode", type=click.Choice(["grid", "random", "noise-table", "mismatch"]),
+              default="grid", show_default=True, help="grid: pitch x roll -40..40 deg in 5 deg "
+              "steps over a smooth and a rough area; random: random surface points and view "
+              "angles; noise-table: camera above the smooth area, every sigma_f x sigma_l x "
+              "distance; mismatch: surveys whose data carry errors the estimator is not told "
+              "about (--trials surveys per setting, --group-size views each).")
+@click.option("--config", "configs", multiple=True,
+              type=click.Choice(["A", "B", "C", "A-adjacent", "C-nonparallel"]),
               help="Laser configuration(s), several allowed: A 4 beams parallel to the axis, "
-              "B two tilted parallel pairs, C misaligned ROV rig [grid/random: A B C; "
-              "noise-table: B C].")
+              "B two tilted parallel pairs, C misaligned ROV rig, A-adjacent A with adjacent "
+              "pairs, C-nonparallel C with its non-parallel pair [grid/random: A B C; "
+              "noise-table: B C; mismatch: C].")
 @click.option("--rig", type=_path, help="Rig TOML instead of the configurations (every laser "
               "needs origin and direction).")
 @click.option("--mesh", type=_path, help="Metric mesh (scale 1) instead of the demo's seafloor.")
@@ -370,6 +374,9 @@ def simulate(**kw: Any) -> int:
     from sfm_laserscale.commands.simulate import SimulationInputs, SimulationOptions, run
     from sfm_laserscale.resources import available_cpus
     from sfm_laserscale.synthetic.simulate.configs import pinhole_camera
+
+    if kw["mode"] == "mismatch":
+        return _simulate_mismatch(kw)
 
     options = SimulationOptions(
         mode=kw["mode"], configs=tuple(kw["configs"]) or None,
@@ -514,6 +521,22 @@ def batch(**kw: Any) -> int:
     result = run(BatchInputs(kw["manifest"]), kw["out"], options, overwrite=kw["overwrite"])
     click.echo(result.summary)
     return EXIT_OK if result.all_scaled else EXIT_NO_SCALE
+
+
+def _simulate_mismatch(kw: dict[str, Any]) -> int:
+    """``simulate --mode mismatch`` (commands/simulate.py: run_mismatch_command)."""
+    from sfm_laserscale.commands.simulate import MismatchOptions, run_mismatch_command
+    from sfm_laserscale.synthetic.simulate.configs import pinhole_camera
+
+    options = MismatchOptions(
+        surveys=kw["trials"] or 200, views=kw["group_size"],
+        config=kw["configs"][0] if kw["configs"] else "C",
+        sigma_f_px=(kw["sigma_f"] or (0.5,))[0], sigma_l_px=(kw["sigma_l"] or (0.25,))[0],
+        outlier_ratio=kw["outliers"], camera=pinhole_camera(*kw["camera"]), seed=kw["seed"],
+        progress=not kw["quiet"])
+    result = run_mismatch_command(kw["out"], options, overwrite=kw["overwrite"])
+    click.echo(result["summary"])
+    return EXIT_OK if any(s.get("n") for s in result["settings"]) else EXIT_NO_SCALE
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -22,8 +22,13 @@ PCM: u ∝ the model distance of the two hits), and 1/ū is biased by σ_rel² o
    by R and the interval taken from Student's t with dof = n − 1 (for one image: the
    within-image χ²). Inflating whenever R > 1 would widen half of all consistent fusions (the
    σ would be 5–15 % too large and the 95 % interval would hold the truth 97 % of the time).
-4. The rig term is propagated through the mean's gradient and added AFTER averaging:
-   σ² = (R⁺σ_rand)² + σ_rig², half-width = √((q σ_rand_eff)² + (z σ_rig)²).
+4. The shared terms (rig calibration and the model's intrinsics, ``rig_params``) are propagated
+   through the mean's gradient and added AFTER averaging: σ² = (R⁺σ_rand)² + σ_sys²,
+   half-width = √((q σ_rand_eff)² + (z σ_sys)²).
+
+The error budget (``FusedScale.budget``) splits σ² term by term: the random terms (spots, pose,
+mesh) through the same weights, the Birge widening as ``scatter``, and the shared terms (rig,
+intrinsics) through the mean's gradient.
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
+from sfm_laserscale.model_error import RANDOM_TERMS, SCATTER_TERM, SHARED_TERMS, term_of
 from sfm_laserscale.uncertainty import METHODS, Estimate, ImageEstimates
 
 logger = logging.getLogger(__name__)
@@ -68,6 +74,7 @@ class ImageCombination:
     rejected: tuple[tuple[str, str], ...]  # (laser, reason) rejected here or before
     chi2: float  # within-image χ² of the used estimates about the GLS mean
     dof: int
+    random_terms: dict[str, float] = field(default_factory=dict)  # term -> variance (s units)
 
     @property
     def sigma(self) -> float:
@@ -101,6 +108,29 @@ class FusedScale:
     inflated: bool = False  # random σ inflated by the Birge ratio
     images_used: tuple[str, ...] = ()
     reason: str | None = None  # why there is no value
+    budget: dict[str, float] = field(default_factory=dict)  # term -> variance (s units)
+    systematic_gradient: dict[str, float] = field(default_factory=dict)  # shared param -> ds
+
+    def budget_shares(self) -> dict[str, float]:
+        """Each term's share of std² (they sum to 1; empty without a budget)."""
+        total = sum(self.budget.values())
+        return {k: v / total for k, v in self.budget.items()} if total > 0 else {}
+
+
+def error_budget(random_terms: dict[str, float], sigma_random: float, inflated_sigma: float,
+                 gradient: dict[str, float]) -> dict[str, float]:
+    """Variance per term: the random terms scaled to ``sigma_random``² (their sum), the Birge
+    widening (``inflated_sigma``² − ``sigma_random``²) and the shared terms from the gradient."""
+    out = dict.fromkeys((*RANDOM_TERMS, SCATTER_TERM, *SHARED_TERMS), 0.0)
+    total = sum(random_terms.values())
+    for term, var in random_terms.items():
+        out[term] = var / total * sigma_random**2 if total > 0 else 0.0
+    if total <= 0 and sigma_random > 0:  # estimates without a term-by-term covariance
+        out["random"] = sigma_random**2
+    out[SCATTER_TERM] = max(inflated_sigma**2 - sigma_random**2, 0.0)
+    for param, g in gradient.items():
+        out[term_of(param)] += g * g
+    return out
 
 
 def _gls(values: F64, cov: F64) -> tuple[F64, float]:
@@ -179,7 +209,20 @@ def combine_image(est: ImageEstimates, method: str, options: FusionOptions
     sigma_u = float(np.sqrt(max(float(w @ c_rand[np.ix_(keep, keep)] @ w), 0.0)))
     return ImageCombination(est.image, value, sigma_u * value**2,
                             -(value**2) * (w @ g_all[keep]), est.rig_params,
-                            tuple(ests[i] for i in keep), tuple(rej), chi2, len(keep) - 1)
+                            tuple(ests[i] for i in keep), tuple(rej), chi2, len(keep) - 1,
+                            _image_terms(est, method, values, keep, w, value))
+
+
+def _image_terms(est: ImageEstimates, method: str, values: F64, keep: list[int], w: F64,
+                 value: float) -> dict[str, float]:
+    """Variance of the image's value (s units) per random term, through the GLS weights."""
+    terms = est.covariance_terms.get(method, {}) if est.covariance_terms else {}
+    d = value**2 / values[keep] ** 2  # ds = value² Σ w_j du_j, du_j = −ds_j / s_j²
+    out = {}
+    for term, cov in terms.items():
+        c = np.asarray(cov)[np.ix_(keep, keep)]
+        out[term] = max(float((w * d) @ c @ (w * d)), 0.0)
+    return out
 
 
 def _align_rig(combos: list[ImageCombination]) -> tuple[F64, tuple[str, ...]]:
@@ -311,11 +354,19 @@ def _combine_images(kept: list[ImageCombination], method: str, options: FusionOp
     sigma_sys = value**2 * float(np.linalg.norm(w @ g_u))
     chi2, dof = _chi2(kept, u, w, c_u + g_u @ g_u.T)
     iv = interval(sigma_rand, sigma_sys, chi2, dof, options)
-    notes = [f"{len(kept)} image(s), {n_used} estimate(s); systematic rig term "
-             f"{sigma_sys:.3g} (does not average down)", *iv.notes]
+    names = _align_rig(kept)[1]
+    gradient = dict(zip(names, (value**2 * (w @ g_u)).tolist(), strict=True))
+    terms: dict[str, float] = {}
+    for wi, c in zip(w, kept, strict=True):
+        scale = (value**2 / c.value**2) ** 2 * wi**2
+        for term, var in c.random_terms.items():
+            terms[term] = terms.get(term, 0.0) + scale * var
+    notes = [f"{len(kept)} image(s), {n_used} estimate(s); shared term (rig calibration, "
+             f"model intrinsics) {sigma_sys:.3g} (does not average down)", *iv.notes]
     std, half, birge, p_value = iv.std, iv.half_width, iv.birge_ratio, iv.p_value
     logger.debug("fused %s: %.6g ± %.3g (birge %.2f, p %.3g)", method, value, std, birge,
                  p_value)
     return FusedScale(value, std, (value - half, value + half), 1.0 / value, method, n_used,
                       len(rejected), per_image, rejected, notes, iv.sigma_random, sigma_sys,
-                      birge, p_value, iv.inflated, tuple(c.image for c in kept))
+                      birge, p_value, iv.inflated, tuple(c.image for c in kept), None,
+                      error_budget(terms, sigma_rand, iv.sigma_random, gradient), gradient)

@@ -15,8 +15,11 @@ from sfm_laserscale.fusion import FusionOptions
 from sfm_laserscale.held_out import HeldOutCheck
 from sfm_laserscale.io.images import LaserImage
 from sfm_laserscale.io.meshes.mesh import TriangleMesh
+from sfm_laserscale.mesh_error import MeshErrorOptions, SpotMeshError
 from sfm_laserscale.model import Camera, SparseModel, Spot
+from sfm_laserscale.model_checks import ModelCheckOptions
 from sfm_laserscale.raycast import CropOptions, SpotCastOptions, SpotHit
+from sfm_laserscale.registration.covariance import IntrinsicsOptions
 from sfm_laserscale.registration.index import DescriptorIndex
 from sfm_laserscale.registration.options import (
     IndexOptions,
@@ -27,7 +30,7 @@ from sfm_laserscale.registration.options import (
 from sfm_laserscale.registration.pose import RegistrationResult
 from sfm_laserscale.registration.sift_workers import SiftPool, SiftWorkerOptions
 from sfm_laserscale.rig import Rig
-from sfm_laserscale.uncertainty import EstimationOptions, ImageEstimates
+from sfm_laserscale.uncertainty import EstimationOptions, ImageEstimates, ImageObservation
 
 
 @dataclass(frozen=True)
@@ -76,6 +79,10 @@ class ScaleOptions:
     mesh_check_radius: float = 0.01
     estimation: EstimationOptions = field(default_factory=EstimationOptions)
     fusion: FusionOptions = field(default_factory=FusionOptions)
+    # the reconstruction's own error in σ (docs/DESIGN.md §4): the model's intrinsics, the mesh
+    intrinsics: IntrinsicsOptions = field(default_factory=IntrinsicsOptions)
+    mesh_error: MeshErrorOptions = field(default_factory=MeshErrorOptions)
+    model_checks: ModelCheckOptions = field(default_factory=ModelCheckOptions)
 
 
 @dataclass(frozen=True)
@@ -110,6 +117,8 @@ class ImageRun:
     spot_reasons: dict[str, str]  # laser -> why it has no usable hit
     estimates: ImageEstimates | None
     reason: str | None  # why the image gave no estimate, None when it did
+    observation: ImageObservation | None = None  # what the estimators saw (with model error)
+    mesh_errors: tuple[SpotMeshError, ...] = ()  # each hit's mesh check
 
 
 class Timer:

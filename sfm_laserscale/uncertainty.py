@@ -15,12 +15,20 @@ Inputs and their covariance (blocks are independent):
   where this parametrisation lives). With this convention the rotation turns about the WORLD
   origin, so the covariance belongs to the world frame of the model it was estimated in: if
   the model is moved by X' = R_w X + t_w, translate it with δt' = δt + [R R_wᵀ t_w]ₓ δrot;
+- mesh (``mesh_sigma``, per hit, model units): the mesh's depth error along the spot's ray
+  (:mod:`sfm_laserscale.mesh_error`); the hit moves along its ray;
 - rig (per calibrated laser, when the rig gives them): origin offset on the laser plane (x, y,
   ``sigma_origin`` metres each) and beam tilt about its origin (two angles perpendicular to the
   beam, ``sigma_direction`` radians each). FCM depends on them directly; PCM and Direct 3D
   through the change of the two beams' perpendicular separation at the hits (when both lasers
-  of the pair are calibrated). Rig errors are common to all images; they are kept apart
-  (``rig_jacobian``) so that fusion does not average them down.
+  of the pair are calibrated);
+- the model's intrinsics (``model_directions``, :mod:`sfm_laserscale.model_error`): camera,
+  pose and hits move together; each direction's response is a central difference of the
+  estimators on the perturbed observation.
+
+Rig and intrinsics errors are common to all images; they are kept apart (``rig_jacobian``, named
+by ``rig_params``) so that fusion does not average them down. The random covariance is also
+given term by term (``covariance_terms``: spots, pose, mesh) for the error budget.
 
 The hits must lie on the spots' rays from ``cam_from_world`` (a warning is logged otherwise);
 the normal's orientation does not matter.
@@ -30,7 +38,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,8 +49,16 @@ from sfm_laserscale.methods.baselines import direct3d_scale, direct3d_scale_batc
 from sfm_laserscale.methods.fcm import fcm_scale, fcm_scale_batch
 from sfm_laserscale.methods.pcm import pcm_scale, pcm_scale_batch
 from sfm_laserscale.model import Camera, Pose
+from sfm_laserscale.model_error import (
+    FOCAL,
+    ModelDirection,
+    on_ray,
+    perturbed_camera,
+    perturbed_pose,
+)
 from sfm_laserscale.raycast import SpotHit
 from sfm_laserscale.rig import Rig
+from sfm_laserscale.rig_checks import refused_pairs
 
 logger = logging.getLogger(__name__)
 
@@ -60,6 +76,9 @@ class ImageObservation:
     cam_from_world: Pose
     pose_covariance: F64 | None  # (6, 6) [rot (rad), trans (model units)], left perturbation
     hits: tuple[SpotHit, ...]
+    mesh_sigma: F64 | None = None  # (K,) mesh depth σ along each hit's ray, model units
+    mesh_correlation: F64 | None = None  # (K, K) correlation of the hits' mesh errors (None: I)
+    model_directions: tuple[ModelDirection, ...] = ()  # the model intrinsics' directions
 
 
 @dataclass(frozen=True)
@@ -96,8 +115,12 @@ class ImageEstimates:
     estimates: tuple[Estimate, ...]
     covariance: Mapping[str, F64]  # method -> (n_m, n_m) total = random + J_rig J_rigᵀ
     covariance_random: Mapping[str, F64]  # method -> (n_m, n_m) spots + pose (per image)
-    rig_jacobian: Mapping[str, F64]  # method -> (n_m, R) d estimate / d (unit-σ rig parameter)
-    rig_params: tuple[str, ...]  # names of the R rig parameters ("L1.origin_x", ...)
+    rig_jacobian: Mapping[str, F64]  # method -> (n_m, R) d estimate / d unit-σ shared parameter
+    rig_params: tuple[str, ...]  # the R shared parameters: "L1.origin_x", "camera1.intrinsics1"
+    # method -> term (spots, pose, mesh) -> (n_m, n_m): covariance_random term by term
+    covariance_terms: Mapping[str, Mapping[str, F64]] = field(default_factory=dict)
+    # method -> (n_m,) d estimate / d (δf / f) of the model's focal length (empty: not computed)
+    focal_sensitivity: Mapping[str, F64] = field(default_factory=dict)
 
     def of(self, method: str) -> tuple[Estimate, ...]:
         """This image's estimates of one method, in covariance order."""
@@ -119,6 +142,23 @@ def perturb_pose(pose: Pose, delta6: F64) -> Pose:
     """Pose perturbed by [δrot (3, rad), δt (3)]: R' = exp([δrot]ₓ) R, t' = t + δt (left)."""
     R, t = perturb_poses(pose, np.asarray(delta6, dtype=np.float64).reshape(1, 6))
     return Pose(R[0], t[0])
+
+
+def perturbed_observation(obs: ImageObservation, direction: ModelDirection, h: float
+                          ) -> ImageObservation:
+    """The observation with its model inputs moved by h · ``direction``: camera and pose changed,
+    each hit re-intersected along its spot's new ray with its tangent plane moved by h · δhit."""
+    camera = perturbed_camera(obs.camera, direction.camera_params, h)
+    pose = perturbed_pose(obs.cam_from_world, direction.pose, h)
+    if not obs.hits:
+        return replace(obs, camera=camera, cam_from_world=pose)
+    xy = np.array([np.asarray(x.xy_px, np.float64).reshape(2) for x in obs.hits])
+    point = np.array([np.asarray(x.hit_world, np.float64).reshape(3) for x in obs.hits])
+    normal = np.array([np.asarray(x.normal_world, np.float64).reshape(3) for x in obs.hits])
+    shift = np.asarray(direction.hits_world, dtype=np.float64).reshape(len(obs.hits), 3)
+    moved = on_ray(camera, pose, xy, point + h * shift, normal)
+    hits = tuple(replace(x, hit_world=moved[k]) for k, x in enumerate(obs.hits))
+    return replace(obs, camera=camera, cam_from_world=pose, hits=hits)
 
 
 def rig_parameter_names(rig: Rig) -> tuple[str, ...]:
@@ -169,6 +209,9 @@ class _Layout:
     pair_beams: NDArray[np.intp]  # (np, 2), −1 for an uncalibrated laser
     pair_sep: F64  # (np,) metres
     rig_sigma: F64  # (4 nb,)
+    mesh_sigma: F64  # (K,) model units along each hit's ray
+    ray_world: F64  # (K, 3) unit world directions of the spots' rays
+    mesh_sqrt: F64  # (K, r) square root of the hits' mesh covariance (model units)
 
     @property
     def n_out(self) -> int:
@@ -209,9 +252,38 @@ def _beams(rig: Rig, options: EstimationOptions) -> tuple[_Beams, F64]:
     return beams, sigma
 
 
+def mesh_sqrt(obs: ImageObservation, order: list[int] | None = None) -> tuple[F64, F64]:
+    """(K,) mesh depth σ of the hits (0 when not given; ``order``: these hits) and (K, r) the
+    square root of their covariance diag(σ) R diag(σ), R = ``mesh_correlation`` (I if None)."""
+    n = len(obs.hits)
+    sig = np.zeros(n) if obs.mesh_sigma is None else np.asarray(obs.mesh_sigma, np.float64)
+    corr = np.eye(n) if obs.mesh_correlation is None else np.asarray(obs.mesh_correlation,
+                                                                      np.float64)
+    if (sig.shape != (n,) or np.any(~np.isfinite(sig)) or np.any(sig < 0)
+            or corr.shape != (n, n) or not np.all(np.isfinite(corr))):
+        raise InputError(f"image {obs.image}: mesh sigma must be {n} finite values >= 0 (and "
+                         f"its correlation a finite {n}×{n} matrix)")
+    idx = list(range(n)) if order is None else order
+    sig, corr = sig[idx], corr[np.ix_(idx, idx)]
+    cov = np.outer(sig, sig) * (0.5 * (corr + corr.T))
+    vals, vecs = np.linalg.eigh(cov)
+    keep = vals > 1e-12 * max(float(vals.max(initial=0.0)), 1e-300)
+    return sig, np.asarray(vecs[:, keep] * np.sqrt(vals[keep]), dtype=np.float64)
+
+
+def _mesh_inputs(obs: ImageObservation, hw: F64) -> tuple[F64, F64, F64]:
+    """(K,) mesh depth σ, (K, r) square root of its covariance, (K, 3) unit world rays."""
+    sig, root = mesh_sqrt(obs)
+    rays = hw - obs.cam_from_world.center
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rays = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    return sig, root, np.nan_to_num(rays)
+
+
 def _layout(obs: ImageObservation, rig: Rig, options: EstimationOptions) -> _Layout:
     """Index the observation's hits against the rig: FCM lasers, PCM pairs, rig σ."""
     names, xy, sig, hw, nw = _hit_arrays(obs, rig)
+    mesh_sigma, root, rays = _mesh_inputs(obs, hw)
     beams, rig_sigma = _beams(rig, options)
     fcm = [(j, names.index(n)) for j, n in enumerate(beams.names) if n in names]
     pairs = [p for p in rig.pairs if p.lasers[0] in names and p.lasers[1] in names]
@@ -225,19 +297,24 @@ def _layout(obs: ImageObservation, rig: Rig, options: EstimationOptions) -> _Lay
         tuple(f"{p.lasers[0]}+{p.lasers[1]}" for p in pairs),
         np.array([[names.index(n) for n in p.lasers] for p in pairs], np.intp).reshape(-1, 2),
         np.array([[beam(n) for n in p.lasers] for p in pairs], np.intp).reshape(-1, 2),
-        np.array([p.separation for p in pairs], dtype=np.float64), rig_sigma)
+        np.array([p.separation for p in pairs], dtype=np.float64), rig_sigma, mesh_sigma, rays,
+        root)
 
 
-def _hits_cam(lay: _Layout, camera: Camera, dpx: F64, R: F64, t: F64) -> tuple[F64, F64]:
+def _hits_cam(lay: _Layout, camera: Camera, dpx: F64, R: F64, t: F64,
+              dmesh: F64 | None = None) -> tuple[F64, F64]:
     """(B, K, 3) camera-frame hits (model units) of perturbed rays on the tangent planes.
 
     Also returns (B, K) |cos| of the ray–normal angle. The camera centre is the origin of the
     camera frame, so the hit is λ·ray with λ = n_c·H_c / n_c·ray (plane through H_c, normal n_c).
+    ``dmesh`` (B, K): the tangent planes moved along the spots' rays (mesh depth error).
     """
     b, k = dpx.shape[0], len(lay.names)
     rays = camera.unproject((lay.xy[None] + dpx).reshape(b * k, 2)).reshape(b, k, 3)
     n_c = np.einsum("bij,kj->bki", R, lay.normal_world)
-    h_c = np.einsum("bij,kj->bki", R, lay.hit_world) + t[:, None, :]
+    hw = lay.hit_world[None] if dmesh is None else (
+        lay.hit_world[None] + dmesh[..., None] * lay.ray_world[None])
+    h_c = np.einsum("bij,bkj->bki", R, np.broadcast_to(hw, (b, k, 3))) + t[:, None, :]
     denom = np.sum(n_c * rays, axis=2)
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = np.sum(n_c * h_c, axis=2) / denom
@@ -295,21 +372,31 @@ def pose_sqrt(obs: ImageObservation) -> F64:
     return np.asarray(vecs[:, keep] * np.sqrt(vals[keep]), dtype=np.float64)
 
 
-def _directions(lay: _Layout, pose_sqrt: F64) -> tuple[F64, NDArray[np.intp]]:
-    """(P, n) input-space σ directions and, per direction, its rig parameter index (−1: random).
+#: Random-term codes of the input directions (rig directions carry their parameter index >= 0).
+_SPOTS, _POSE, _MESH = -1, -2, -3
+_TERM_CODES = {"spots": _SPOTS, "pose": _POSE, "mesh": _MESH}
 
-    Inputs are ordered [spot pixels (2 per hit), pose (6), rig (4 per calibrated laser)];
-    directions of zero σ are dropped.
+
+def _directions(lay: _Layout, pose_sqrt: F64) -> tuple[F64, NDArray[np.intp]]:
+    """(P, n) input-space σ directions and, per direction, its rig parameter index (>= 0) or its
+    random term's code (``_SPOTS``, ``_POSE``, ``_MESH``).
+
+    Inputs are ordered [spot pixels (2 per hit), pose (6), mesh (1 per hit, correlated within
+    the image), rig (4 per calibrated laser)]; directions of zero σ are dropped.
     """
     k, r, m = len(lay.names), len(lay.rig_sigma), pose_sqrt.shape[1]
     px_sigma = np.repeat(lay.sigma_px, 2)
     px = np.flatnonzero(px_sigma > 0)
+    q = lay.mesh_sqrt.shape[1]
     rig = np.flatnonzero(lay.rig_sigma > 0)
-    d = np.zeros((2 * k + 6 + r, len(px) + m + len(rig)))
+    n_rand = len(px) + m + q
+    d = np.zeros((3 * k + 6 + r, n_rand + len(rig)))
     d[px, np.arange(len(px))] = px_sigma[px]
     d[2 * k:2 * k + 6, len(px):len(px) + m] = pose_sqrt
-    d[2 * k + 6 + rig, len(px) + m + np.arange(len(rig))] = lay.rig_sigma[rig]
-    return d, np.concatenate([np.full(len(px) + m, -1), rig]).astype(np.intp)
+    d[2 * k + 6:3 * k + 6, len(px) + m:n_rand] = lay.mesh_sqrt
+    d[3 * k + 6 + rig, n_rand + np.arange(len(rig))] = lay.rig_sigma[rig]
+    codes = [np.full(len(px), _SPOTS), np.full(m, _POSE), np.full(q, _MESH), rig]
+    return d, np.concatenate(codes).astype(np.intp)
 
 
 def _jacobian(lay: _Layout, obs: ImageObservation, options: EstimationOptions
@@ -321,8 +408,9 @@ def _jacobian(lay: _Layout, obs: ImageObservation, options: EstimationOptions
     deltas = np.vstack([np.zeros(d.shape[0]), h * d.T, -h * d.T])  # (1 + 2n, P), row 0 nominal
     k = len(lay.names)
     R, t = perturb_poses(obs.cam_from_world, deltas[:, 2 * k:2 * k + 6])
-    x, cos_inc = _hits_cam(lay, obs.camera, deltas[:, :2 * k].reshape(-1, k, 2), R, t)
-    f = _outputs(lay, x, deltas[:, 2 * k + 6:])
+    x, cos_inc = _hits_cam(lay, obs.camera, deltas[:, :2 * k].reshape(-1, k, 2), R, t,
+                           deltas[:, 2 * k + 6:3 * k + 6])
+    f = _outputs(lay, x, deltas[:, 3 * k + 6:])
     n = d.shape[1]
     diff = f[1:1 + n] - f[1 + n:]
     nf = len(lay.fcm_beam)
@@ -330,13 +418,46 @@ def _jacobian(lay: _Layout, obs: ImageObservation, options: EstimationOptions
     return (diff / (2 * h)).T, rig_idx, x[0], cos_inc[0]
 
 
-def _split(jd: F64, rig_idx: NDArray[np.intp], n_rig: int) -> tuple[F64, F64]:
-    """Random covariance (n_out, n_out) and rig Jacobian (n_out, R) from J·D."""
-    a = jd[:, rig_idx < 0]
+def _split(jd: F64, rig_idx: NDArray[np.intp], n_rig: int) -> tuple[dict[str, F64], F64]:
+    """Random covariance (n_out, n_out) per term and rig Jacobian (n_out, R) from J·D."""
+    terms = {}
+    for term, code in _TERM_CODES.items():
+        a = jd[:, rig_idx == code]
+        terms[term] = a @ a.T
     g = np.zeros((jd.shape[0], n_rig))
     for col in np.flatnonzero(rig_idx >= 0):
         g[:, rig_idx[col]] = jd[:, col]
-    return a @ a.T, g
+    return terms, g
+
+
+def _model_columns(obs: ImageObservation, rig: Rig, lay: _Layout, options: EstimationOptions
+                   ) -> tuple[list[str], F64, F64 | None]:
+    """Responses of the outputs to the model's intrinsics directions: names and (n_out, D) of
+    the unit-σ ones, and (n_out,) per unit δf / f of the focal one (None without it).
+
+    Central differences of the estimators on perturbed observations, step ``fd_step_sigma``
+    (the focal direction: 1e-4 · δf / f).
+    """
+    names, cols, focal = [], [], None
+    zero_rig = np.zeros((1, len(lay.rig_sigma)))
+    for d in obs.model_directions:
+        h = options.fd_step_sigma if d.in_sigma else 1e-4
+        f = []
+        for sign in (1.0, -1.0):
+            o = perturbed_observation(obs, d, sign * h)
+            lay_s = _layout(o, rig, options)
+            R, t = perturb_poses(o.cam_from_world, np.zeros((1, 6)))
+            x, _ = _hits_cam(lay_s, o.camera, np.zeros((1, len(lay_s.names), 2)), R, t)
+            f.append(_outputs(lay_s, x, zero_rig)[0])
+        col = (f[0] - f[1]) / (2 * h)
+        nf = len(lay.fcm_beam)
+        col[nf:2 * nf] = 0.0  # residual angles: not part of the systematic budget
+        if d.in_sigma:
+            names.append(d.name)
+            cols.append(col)
+        elif d.name.endswith(FOCAL):
+            focal = col
+    return names, np.array(cols).T.reshape(lay.n_out, len(cols)), focal
 
 
 def _sigma(cov: F64, i: int) -> float:
@@ -387,8 +508,9 @@ def _fcm_estimates(lay: _Layout, image: str, x0: F64, cos0: F64, cov: F64,
 
 
 def _pair_estimates(lay: _Layout, image: str, x0: F64, cos0: F64, cov: F64,
-                    options: EstimationOptions) -> list[Estimate]:
-    """PCM and Direct 3D estimates of each pair with both hits."""
+                    options: EstimationOptions, refused: Mapping[str, str]) -> list[Estimate]:
+    """PCM and Direct 3D estimates of each pair with both hits (``refused``: pairs whose beams
+    are far from parallel, rejected with that reason)."""
     nf, npair = len(lay.fcm_beam), len(lay.pair_names)
     pcm: list[Estimate] = []
     d3: list[Estimate] = []
@@ -396,7 +518,7 @@ def _pair_estimates(lay: _Layout, image: str, x0: F64, cos0: F64, cov: F64,
         k1, k2 = (int(k) for k in lay.pair_hits[j])
         h1, h2, sep = x0[k1], x0[k2], float(lay.pair_sep[j])
         res = pcm_scale(h1, h2, sep)
-        graze = _grazing(lay, cos0, (k1, k2), options)
+        graze = refused.get(name) or _grazing(lay, cos0, (k1, k2), options)
         mid = float(np.linalg.norm(0.5 * (h1 + h2)))
         for method, value, row, dest, reason in (
             ("pcm", res.scale, 2 * nf + j, pcm, res.reason or graze),
@@ -448,11 +570,20 @@ def estimate_image(obs: ImageObservation, rig: Rig, options: EstimationOptions
         return ImageEstimates(obs.image, (), empty, dict(empty),
                               {m: np.zeros((0, len(names))) for m in METHODS}, names)
     jd, rig_idx, x0, cos0 = _jacobian(lay, obs, options)
-    c_rand, g = _split(jd, rig_idx, len(lay.rig_sigma))
+    terms, g = _split(jd, rig_idx, len(lay.rig_sigma))
+    model_names, g_model, focal = _model_columns(obs, rig, lay, options)
+    g = np.hstack([g, g_model])
+    c_rand = sum(terms.values(), np.zeros((lay.n_out, lay.n_out)))
     c_tot = c_rand + g @ g.T
     _check_hits_on_rays(lay, obs, x0)
     ests = _fcm_estimates(lay, obs.image, x0, cos0, c_tot, options)
-    ests += _pair_estimates(lay, obs.image, x0, cos0, c_tot, options)
+    ests += _pair_estimates(lay, obs.image, x0, cos0, c_tot, options, refused_pairs(rig))
+    per_term: dict[str, dict[str, F64]] = {m: {} for m in METHODS}
+    for term, cov in terms.items():
+        for m, block in _per_method(lay, cov, ests, True).items():
+            per_term[m][term] = block
+    sens = {} if focal is None else _per_method(lay, focal[:, None], ests, False)
     return ImageEstimates(obs.image, tuple(ests), _per_method(lay, c_tot, ests, True),
                           _per_method(lay, c_rand, ests, True),
-                          _per_method(lay, g, ests, False), names)
+                          _per_method(lay, g, ests, False), (*names, *model_names), per_term,
+                          {m: v[:, 0] for m, v in sens.items()})

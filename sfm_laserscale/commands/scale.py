@@ -29,12 +29,21 @@ from sfm_laserscale.io.models import load_model
 from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
 from sfm_laserscale.io.spots_csv import read_spots_csv
 from sfm_laserscale.memory import trim_heap
+from sfm_laserscale.mesh_error import SharedOffset
 from sfm_laserscale.methods.pcm_joint import (
     PcmJointOptions,
     PcmJointResult,
     estimate_pcm_joint,
 )
 from sfm_laserscale.model import Camera, Pose, SparseModel, Spot
+from sfm_laserscale.model_checks import ModelChecks
+from sfm_laserscale.model_stage import (
+    check_model,
+    intrinsics_field,
+    mesh_check_rays,
+    model_inputs,
+    shared_mesh_offset,
+)
 from sfm_laserscale.provenance import (
     captured_colmap_log,
     captured_log,
@@ -52,6 +61,7 @@ from sfm_laserscale.raycast import (
     pixel_rays,
     spot_cast_rays,
 )
+from sfm_laserscale.registration.covariance import IntrinsicsField
 from sfm_laserscale.registration.features import open_model_features
 from sfm_laserscale.registration.index import DescriptorIndex, build_index, select_index_candidates
 from sfm_laserscale.registration.pose import register_image
@@ -206,6 +216,7 @@ def crop_mesh(runs: Sequence[ImageRun], loaded: LoadedInputs,
     the points of the images still estimated: a subset of these."""
     rays = [spot_cast_rays(r.spots, camera, pose, options.spot_cast)
             for r, camera, pose in _views(runs)]
+    rays += [mesh_check_rays(r, options) for r, _, _ in _views(runs)]
     origins = np.concatenate([o for o, _ in rays]) if rays else np.zeros((0, 3))
     dirs = np.concatenate([d for _, d in rays]) if rays else np.zeros((0, 3))
     if loaded.mesh is None:
@@ -268,8 +279,11 @@ def mesh_model_agreement(points: np.ndarray, caster: MeshRaycaster, extent: floa
 
 
 def cast_and_estimate(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster,
-                      options: ScaleOptions, timer: Timer) -> ImageRun:
-    """Cast the spots of a registered image into the mesh and estimate the scale."""
+                      options: ScaleOptions, timer: Timer,
+                      field: IntrinsicsField | None = None,
+                      mesh_offset: SharedOffset | None = None) -> ImageRun:
+    """Cast the spots of a registered image into the mesh and estimate the scale (with the
+    model's own error: the mesh's at each spot, the intrinsics' in ``field``)."""
     view = _view(run)
     if view is None or run.registration is None:
         return run
@@ -281,13 +295,17 @@ def cast_and_estimate(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster
         why = ("no laser spot found" if not run.spots else
                "no usable spot hit on the mesh: " + "; ".join(sorted(set(cast.reasons.values()))))
         return replace(run, spot_reasons=spot_reasons, reason=why)
-    obs = ImageObservation(image=run.name, camera=camera, cam_from_world=pose,
-                           pose_covariance=run.registration.covariance, hits=cast.hits)
     with timer("estimate"):
+        extra = model_inputs(run, cast.hits, caster, field, options, mesh_offset)
+        obs = ImageObservation(image=run.name, camera=camera, cam_from_world=pose,
+                               pose_covariance=run.registration.covariance, hits=cast.hits,
+                               mesh_sigma=extra.mesh_sigma, model_directions=extra.directions,
+                               mesh_correlation=extra.mesh_correlation)
         est = estimate_image(obs, loaded.rig, options.estimation)
     usable = [e for e in est.estimates if not e.rejected]
     reason = None if usable else "every estimate of this image was rejected"
-    return replace(run, hits=cast.hits, spot_reasons=spot_reasons, estimates=est, reason=reason)
+    return replace(run, hits=cast.hits, spot_reasons=spot_reasons, estimates=est, reason=reason,
+                   observation=obs, mesh_errors=extra.mesh_errors)
 
 
 def _observations(runs: Sequence[ImageRun]) -> list[ImageObservation]:
@@ -297,9 +315,9 @@ def _observations(runs: Sequence[ImageRun]) -> list[ImageObservation]:
         reg = r.registration
         if r.estimates is None or r.camera is None or reg is None or reg.cam_from_world is None:
             continue
-        out.append(ImageObservation(image=r.name, camera=r.camera,
-                                    cam_from_world=reg.cam_from_world,
-                                    pose_covariance=reg.covariance, hits=r.hits))
+        out.append(r.observation if r.observation is not None else ImageObservation(
+            image=r.name, camera=r.camera, cam_from_world=reg.cam_from_world,
+            pose_covariance=reg.covariance, hits=r.hits))
     return out
 
 
@@ -310,6 +328,8 @@ class MethodFusion:
     headline: FusedScale
     methods: dict[str, FusedScale]
     pcm_joint: PcmJointResult
+    model_checks: ModelChecks | None = None
+    intrinsics: IntrinsicsField | None = None
 
 
 def fuse_all(runs: Sequence[ImageRun], rig: Rig, options: ScaleOptions) -> MethodFusion:
@@ -362,11 +382,18 @@ def _estimate_all(
         caster = crop.raycaster()
     logger.info("mesh cropped to the spots' rays and the check points: %d of %d triangles "
                 "(%.2f %%)", len(crop.triangles), crop.source_triangles, 100 * crop.kept_fraction)
-    runs = [cast_and_estimate(r, loaded, caster, options, timer) for r in runs]
+    with timer("estimate"):
+        field = intrinsics_field(inputs.model, runs, options)
+        offset = shared_mesh_offset(runs, caster, field, options)
+    runs = [cast_and_estimate(r, loaded, caster, options, timer, field, offset) for r in runs]
     for r in runs:
         logger.info("laser image %s: %s", r.name,
                     "estimated" if r.reason is None else f"no estimate ({r.reason})")
     fusion = fuse_all(runs, loaded.rig, options)
+    head, methods, model_checks = check_model(fusion.headline, fusion.methods,
+                                              fusion.pcm_joint.joint, runs, loaded.model,
+                                              field, options)
+    fusion = MethodFusion(head, methods, fusion.pcm_joint, model_checks, field)
     checks = {"mesh_model_agreement": mesh_model_agreement(
         mesh_check_points(runs, options, loaded.model.extent), caster, loaded.model.extent,
         lambda: load_mesh(inputs.mesh))}
@@ -413,7 +440,7 @@ def run(
             headline, fused, joint = fusion.headline, fusion.methods, fusion.pcm_joint
             with staged_output_dir(out_dir, overwrite) as tmp, timer("write"):
                 report = build_report(inputs, options, loaded, runs, headline, fused, checks, timer,
-                                      pcm_joint=joint)
+                                      pcm_joint=joint, model=fusion)
                 report["provenance"] = provenance(hashed, options, digests)
                 add_input_keys(report, inputs, loaded.held_out, options.reuse_model_poses)
                 write_outputs(tmp, inputs, loaded, runs, headline, report, options, timer)

@@ -23,10 +23,16 @@ from typing import Any
 from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
 from sfm_laserscale.report.simulate_plots import simulation_figures
 from sfm_laserscale.synthetic.simulate.configs import SimulationInputs, SimulationOptions
+from sfm_laserscale.synthetic.simulate.mismatch import (
+    MismatchOptions,
+    mismatch_table,
+    run_mismatch,
+)
 from sfm_laserscale.synthetic.simulate.runner import SimulationResult, _jsonable, simulate
 from sfm_laserscale.synthetic.simulate.samples import Collected
 
-__all__ = ["SimulationInputs", "SimulationOptions", "SimulationResult", "run"]
+__all__ = ["MismatchOptions", "SimulationInputs", "SimulationOptions", "SimulationResult", "run",
+           "run_mismatch_command"]
 
 
 def _trial_rows(col: Collected) -> Iterator[list[Any]]:
@@ -73,3 +79,23 @@ def run(inputs: SimulationInputs, out_dir: Path,
     result = simulate(inputs, options)
     write_simulation(out_dir, result, overwrite)
     return result
+
+
+def run_mismatch_command(out_dir: Path, options: MismatchOptions, overwrite: bool = False
+                         ) -> dict[str, Any]:
+    """``simulate --mode mismatch``: the mismatch settings' surveys (docs/SIMULATE.md); writes
+    results.json and table.md into ``out_dir``; returns results.json's content with a
+    ``summary`` line."""
+    check_output_dir(out_dir, overwrite)
+    results = run_mismatch(options)
+    table = mismatch_table(results)
+    with staged_output_dir(out_dir, overwrite) as tmp:
+        (tmp / "results.json").write_text(json.dumps(_jsonable(results), indent=1,
+                                                     allow_nan=False), encoding="utf-8")
+        (tmp / "table.md").write_text(table, encoding="utf-8")
+    met = sum(1 for s in results["settings"] if s.get("n") and (
+        0.90 <= s["coverage95"] <= 0.97 if s["covered"] else s["flagged_any"] >= 0.8))
+    results["summary"] = (f"simulate mismatch: {len(results['settings'])} settings x "
+                          f"{options.surveys} surveys of {options.views} views in "
+                          f"{results['seconds']:.0f} s; targets met in {met}")
+    return results

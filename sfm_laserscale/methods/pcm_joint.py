@@ -24,14 +24,17 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from sfm_laserscale.errors import InputError
-from sfm_laserscale.fusion import FusedScale, FusionOptions, fuse, interval
+from sfm_laserscale.fusion import FusedScale, FusionOptions, error_budget, fuse, interval
 from sfm_laserscale.rig import Pair, Rig
+from sfm_laserscale.rig_checks import refused_pairs
 from sfm_laserscale.uncertainty import (
     RIG_PARAM_SUFFIXES,
     EstimationOptions,
     ImageObservation,
     estimate_image,
+    mesh_sqrt,
     perturb_poses,
+    perturbed_observation,
     pose_sqrt,
     tilt_basis,
 )
@@ -107,7 +110,8 @@ class _ImageData:
     x: F64  # (K, 3) camera-frame hits, model units
     normal: F64  # (K, 3) unit normals, camera frame
     cos_inc: F64  # (K,) |cos| of the ray–normal angle
-    sens: F64  # (3K, m) d hits / d unit-σ input (spot pixels, then pose directions)
+    sens: F64  # (3K, m) d hits / d unit-σ input (spot pixels, pose directions, mesh depths)
+    terms: NDArray[np.str_]  # (m,) the error budget's term of each input: spots, pose, mesh
 
     def rows(self, k: int) -> slice:
         return slice(3 * k, 3 * k + 3)
@@ -140,23 +144,40 @@ def _image_data(obs: ImageObservation, rig: Rig, h: float) -> _ImageData | None:
         nw = nw / np.linalg.norm(nw, axis=1, keepdims=True)
     px_sigma = np.repeat([float(x.sigma_px) for x in hits], 2)
     root = pose_sqrt(obs)
-    d = np.zeros((2 * k + 6, 2 * k + root.shape[1]))
+    _, mesh = mesh_sqrt(obs, [obs.hits.index(h) for h in hits])  # (k, q), correlated
+    m, q = root.shape[1], mesh.shape[1]
+    d = np.zeros((3 * k + 6, 2 * k + m + q))
     d[np.arange(2 * k), np.arange(2 * k)] = px_sigma
-    d[2 * k:, 2 * k:] = root
-    d = d[:, np.any(d != 0, axis=0)]
-    deltas = np.vstack([np.zeros(2 * k + 6), h * d.T, -h * d.T])  # row 0 nominal
-    R, t = perturb_poses(obs.cam_from_world, deltas[:, 2 * k:])
+    d[2 * k:2 * k + 6, 2 * k:2 * k + m] = root
+    d[2 * k + 6:, 2 * k + m:] = mesh
+    terms = np.array(["spots"] * (2 * k) + ["pose"] * m + ["mesh"] * q)
+    keep = np.any(d != 0, axis=0)
+    d, terms = d[:, keep], terms[keep]
+    deltas = np.vstack([np.zeros(3 * k + 6), h * d.T, -h * d.T])  # row 0 nominal
+    R, t = perturb_poses(obs.cam_from_world, deltas[:, 2 * k:2 * k + 6])
     rays = obs.camera.unproject((xy[None] + deltas[:, :2 * k].reshape(-1, k, 2)).reshape(-1, 2))
     rays = rays.reshape(len(deltas), k, 3)
     n_c = np.einsum("bij,kj->bki", R, nw)
-    h_c = np.einsum("bij,kj->bki", R, hw) + t[:, None, :]
+    ray_w = hw - obs.cam_from_world.center
+    ray_w /= np.linalg.norm(ray_w, axis=1, keepdims=True)
+    hw_b = hw[None] + deltas[:, 2 * k + 6:, None] * ray_w[None]  # mesh depth along the rays
+    h_c = np.einsum("bij,bkj->bki", R, hw_b) + t[:, None, :]
     denom = np.sum(n_c * rays, axis=2)
     with np.errstate(divide="ignore", invalid="ignore"):
         x = rays * (np.sum(n_c * h_c, axis=2) / denom)[..., None]  # ray ∩ tangent plane
         cos_inc = np.abs(denom[0]) / np.linalg.norm(rays[0], axis=1)
     n = d.shape[1]
     sens = (x[1:1 + n] - x[1 + n:]).reshape(n, 3 * k).T / (2 * h)
-    return _ImageData(obs.image, tuple(x.laser for x in hits), x[0], n_c[0], cos_inc, sens)
+    return _ImageData(obs.image, tuple(x.laser for x in hits), x[0], n_c[0], cos_inc, sens,
+                      terms)
+
+
+def _hits_cam(obs: ImageObservation, rig: Rig) -> tuple[tuple[str, ...], F64]:
+    """The pair lasers' names and (K, 3) camera-frame hits of an observation."""
+    in_pairs = {n for p in rig.pairs for n in p.lasers}
+    hits = [x for x in obs.hits if x.laser in in_pairs]
+    hw = np.array([np.asarray(x.hit_world, np.float64).reshape(3) for x in hits]).reshape(-1, 3)
+    return tuple(x.laser for x in hits), obs.cam_from_world.transform(hw)
 
 
 def _unusable(data: _ImageData, k1: int, k2: int, min_cos: float) -> str | None:
@@ -357,7 +378,53 @@ class _PairState:
     fit: PairJointFit
     inputs: dict[str, F64]  # image -> (m,) ∂s/∂(unit-σ inputs of that image)
     implied: dict[str, tuple[float, F64]]  # image -> (implied scale, (m,) its input gradient)
-    rig: dict[str, float]  # rig parameter -> ∂s/∂(unit-σ parameter)
+    rig: dict[str, float]  # shared parameter (rig, model intrinsics) -> ∂s/∂(unit-σ parameter)
+    terms: dict[str, NDArray[np.str_]] = field(default_factory=dict)  # image -> (m,) terms
+
+
+#: Hits of the perturbed observations: direction -> (h, per image (names, (K, 3) camera hits) at
+#: +h, the same at −h).
+Shifted = dict[str, tuple[float, dict[str, tuple[tuple[str, ...], F64]],
+                          dict[str, tuple[tuple[str, ...], F64]]]]
+
+
+def _shifted_hits(observations: Sequence[ImageObservation], rig: Rig, h: float) -> Shifted:
+    """The pair lasers' camera-frame hits of every observation moved ±h along each of its
+    model intrinsics directions of unit σ (:mod:`sfm_laserscale.model_error`)."""
+    out: Shifted = {}
+    for obs in observations:
+        for d in obs.model_directions:
+            if not d.in_sigma:
+                continue
+            entry = out.setdefault(d.name, (h, {}, {}))
+            entry[1][obs.image] = _hits_cam(perturbed_observation(obs, d, h), rig)
+            entry[2][obs.image] = _hits_cam(perturbed_observation(obs, d, -h), rig)
+    return out
+
+
+def _model_gradient(pair: Pair, entries: Sequence[tuple[_ImageData, int, int]], kept: list[int],
+                    c: F64, shifted: Shifted, options: PcmJointOptions) -> dict[str, float]:
+    """∂s/∂(unit-σ model intrinsics direction): the joint fit of the kept images re-solved with
+    their hits moved ± along the direction (central difference; weights held)."""
+    out: dict[str, float] = {}
+    for name, (h, plus, minus) in shifted.items():
+        s_pm = []
+        for side in (plus, minus):
+            rows = []
+            for i in kept:
+                dat = entries[i][0]
+                if dat.image not in side:
+                    break
+                names, x = side[dat.image]
+                rows.append(x[[names.index(pair.lasers[0]), names.index(pair.lasers[1])]])
+            sol = None if len(rows) != len(kept) else _solve(np.array(rows), c[kept],
+                                                               options.max_iterations)
+            if sol is None:
+                break
+            s_pm.append(_scale_and_gradient(sol.theta, pair.separation)[0])
+        if len(s_pm) == 2:
+            out[name] = (s_pm[0] - s_pm[1]) / (2 * h)
+    return out
 
 
 def _robust_fit(x: F64, c: F64, options: PcmJointOptions
@@ -418,10 +485,13 @@ def _not_fitted(name: str, images: list[PairImageFit], reason: str) -> _PairStat
     return _PairState(fit, {}, {}, {})
 
 
-def _fit_pair(pair: Pair, data: Sequence[_ImageData], rig: Rig, options: PcmJointOptions
-              ) -> _PairState:
+def _fit_pair(pair: Pair, data: Sequence[_ImageData], rig: Rig, options: PcmJointOptions,
+              shifted: Shifted | None = None) -> _PairState:
     """Joint fit of one parallel pair over the images that see both its lasers."""
     name = "+".join(pair.lasers)
+    refused = refused_pairs(rig).get(name)
+    if refused is not None:
+        return _not_fitted(name, [], refused)
     entries, unusable = _pair_entries(pair, data, options.estimation.min_incidence_cos)
     sens = [dat.sens[np.r_[dat.rows(k1), dat.rows(k2)]] for dat, k1, k2 in entries]  # (6, m)
     x = np.array([dat.x[[k1, k2]] for dat, k1, k2 in entries]).reshape(-1, 2, 3)
@@ -443,13 +513,15 @@ def _fit_pair(pair: Pair, data: Sequence[_ImageData], rig: Rig, options: PcmJoin
     normal = np.array([dat.normal[[k1, k2]] for dat, k1, k2 in entries])[kept]
     rig_grad = (_rig_gradient(pair, rig, x[kept], normal, grads, v, s)
                 if options.estimation.include_rig_uncertainty else {})
+    rig_grad.update(_model_gradient(pair, entries, kept, c, shifted or {}, options))
     sigma_rand = float(np.sqrt(sum(float(u @ u) for u in inputs.values())))
     fit = PairJointFit(name, True, s, sigma_rand,
                        float(np.linalg.norm(list(rig_grad.values()))) if rig_grad else 0.0,
                        v, _direction_sigma_deg(sol),
                        s * np.column_stack([sol.theta[2:].reshape(2, 2), np.zeros(2)]),
                        float(sol.chi2.sum()), 4 * len(kept) - 6, tuple(images))
-    return _PairState(fit, inputs, implied, rig_grad)
+    terms = {entries[i][0].image: entries[i][0].terms for i in kept}
+    return _PairState(fit, inputs, implied, rig_grad, terms)
 
 
 # --------------------------------------------------------------------------- all pairs
@@ -464,15 +536,32 @@ def _gls(values: F64, cov: F64) -> tuple[F64, float]:
     return w, float(r @ cinv @ r)
 
 
-def _cross_cov(grads: Sequence[dict[str, F64]]) -> F64:
-    """Covariance of estimates from their per-image input gradients (images independent)."""
+def _cross_cov(grads: Sequence[dict[str, F64]],
+               masks: Sequence[dict[str, NDArray[np.bool_]]] | None = None) -> F64:
+    """Covariance of estimates from their per-image input gradients (images independent);
+    ``masks``: only these inputs of each image (one term of the budget)."""
     n = len(grads)
     cov = np.zeros((n, n))
     for p in range(n):
         for q in range(p, n):
-            cov[p, q] = cov[q, p] = sum(float(u @ grads[q][im]) for im, u in grads[p].items()
-                                        if im in grads[q])
+            total = 0.0
+            for im, u in grads[p].items():
+                if im not in grads[q]:
+                    continue
+                keep = np.ones(len(u), bool) if masks is None else masks[p][im]
+                total += float(u[keep] @ grads[q][im][keep])
+            cov[p, q] = cov[q, p] = total
     return cov
+
+
+def _term_variances(states: Sequence[_PairState], w: F64) -> dict[str, float]:
+    """Variance of the GLS mean per random term (spots, pose, mesh)."""
+    names = {str(t) for st in states for ts in st.terms.values() for t in ts}
+    out = {}
+    for term in sorted(names):
+        masks = [{im: ts == term for im, ts in st.terms.items()} for st in states]
+        out[term] = max(float(w @ _cross_cov([st.inputs for st in states], masks) @ w), 0.0)
+    return out
 
 
 def _per_image(states: Sequence[_PairState]) -> dict[str, tuple[float, float]]:
@@ -499,7 +588,8 @@ def _notes(states: Sequence[_PairState], others: Sequence[PairJointFit], sigma_s
                      f"{angle:.3f}° ± {f.direction_sigma_deg:.3f}° off the optical axis; "
                      f"chi2 {f.chi2:.1f} / {f.dof} dof")
     notes += [f"{f.pair}: not used ({f.reason})" for f in others]
-    notes.append(f"systematic rig term {sigma_sys:.3g} (does not average down)")
+    notes.append(f"shared term (rig calibration, model intrinsics) {sigma_sys:.3g} "
+                 "(does not average down)")
     return notes
 
 
@@ -523,10 +613,12 @@ def _combine(states: Sequence[_PairState], others: Sequence[PairJointFit],
                 for f in [st.fit for st in states] for im in f.images if im.rejected]
     used = tuple(dict.fromkeys(im for st in states for im in st.inputs))
     half = iv.half_width
+    gradient = dict(zip(names, (w @ g).tolist(), strict=True))
+    budget = error_budget(_term_variances(states, w), sigma_rand, iv.sigma_random, gradient)
     return FusedScale(value, iv.std, (value - half, value + half),
                       1.0 / value, METHOD, sum(len(st.inputs) for st in states), len(rejected),
                       _per_image(states), rejected, notes, iv.sigma_random, sigma_sys,
-                      iv.birge_ratio, iv.p_value, iv.inflated, used)
+                      iv.birge_ratio, iv.p_value, iv.inflated, used, None, budget, gradient)
 
 
 def _fallback(observations: Sequence[ImageObservation], rig: Rig, fits: Sequence[PairJointFit],
@@ -557,7 +649,8 @@ def estimate_pcm_joint(observations: Sequence[ImageObservation], rig: Rig,
     _check_options(options)
     data = [d for d in (_image_data(o, rig, options.estimation.fd_step_sigma)
                         for o in observations) if d is not None]
-    states = [_fit_pair(pair, data, rig, options) for pair in rig.pairs]
+    shifted = _shifted_hits(observations, rig, options.estimation.fd_step_sigma)
+    states = [_fit_pair(pair, data, rig, options, shifted) for pair in rig.pairs]
     fitted = [st for st in states if st.fit.joint]
     fits = tuple(st.fit for st in states)
     if not fitted:

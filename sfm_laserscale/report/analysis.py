@@ -13,9 +13,12 @@ import statistics
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from sfm_laserscale.report.model_warnings import model_warnings
+
 #: Methods in the order the report shows them (the headline candidates first, baselines last).
 METHOD_ORDER = ("fcm", "pcm", "pcm_joint", "direct3d")
-METHOD_LABELS = {"fcm": "FCM", "pcm": "PCM", "pcm_joint": "PCM-joint", "direct3d": "Direct 3D"}
+METHOD_LABELS = {"fcm": "FCM", "pcm": "PCM", "pcm_joint": "PCM-joint", "direct3d": "Direct 3D",
+                 "focal_corrected": "Focal-corrected"}
 
 
 @dataclass(frozen=True)
@@ -413,6 +416,7 @@ def warnings(
         + _laser_warnings(report, diag)
         + _rejection_notes(report, diag)
         + _check_warnings(report, opt)
+        + model_warnings(report)  # the reconstruction's own error (report/model_warnings.py)
     )
 
 

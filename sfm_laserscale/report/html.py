@@ -26,6 +26,7 @@ from jinja2 import (
 from jinja2.bccache import Bucket
 from markupsafe import Markup
 
+from sfm_laserscale.model_checks import ModelCheckOptions
 from sfm_laserscale.report import format as fm
 from sfm_laserscale.report.analysis import (
     METHOD_LABELS,
@@ -33,10 +34,16 @@ from sfm_laserscale.report.analysis import (
     annotate,
     pcm_joint_fell_back,
 )
+from sfm_laserscale.report.model_plots import model_plots
 from sfm_laserscale.report.plots import methods_plot, per_laser_method, per_laser_plot
 from sfm_laserscale.report.style import laser_color_hex
 
 logger = logging.getLogger(__name__)
+
+#: The error budget's terms as the page names them.
+BUDGET_LABELS = {"spots": "laser spots", "pose": "registered pose", "mesh": "mesh depth",
+                 "rig": "rig calibration", "intrinsics": "model intrinsics (focal, distortion)",
+                 "scatter": "observed scatter beyond σ", "random": "random (spots, pose, mesh)"}
 
 Path_ = Sequence[str | int]
 
@@ -160,6 +167,7 @@ def render_html(report: dict[str, Any], out_dir: Path) -> str:
     if "diagnostics" not in report:  # a report.json written before the derived keys existed
         report = annotate(json.loads(json.dumps(report)))
     plots = {"per_laser": per_laser_plot(report), "methods": methods_plot(report)}
+    plots.update(model_plots(report))  # the model checks' plots (report/model_plots.py)
     methods = [m for m in METHOD_ORDER if m in report["methods"]]
     methods += [m for m in report["methods"] if m not in methods]
     lasers = list(report["rig"]["lasers"])
@@ -179,6 +187,8 @@ def render_html(report: dict[str, Any], out_dir: Path) -> str:
             find=find,
             fell_back=pcm_joint_fell_back,
             plot_method=per_laser_method(report),
+            budget_labels=BUDGET_LABELS,
+            th_model_z=ModelCheckOptions().z_limit,
         )
     )
 

@@ -29,6 +29,13 @@ from sfm_laserscale.methods.pcm_joint import PairJointFit, PcmJointResult
 from sfm_laserscale.provenance import progress_bar
 from sfm_laserscale.report.analysis import ReportChecksOptions, annotate
 from sfm_laserscale.report.html import render_html
+from sfm_laserscale.report.model_report import (
+    append_segment_rows,
+    budget_dict,
+    model_checks_dict,
+    model_error_dict,
+    pair_checks_dict,
+)
 from sfm_laserscale.report.overlays import draw_overlay, near_misses, reprojected_points
 from sfm_laserscale.report.validate import check_html
 from sfm_laserscale.run_types import ImageRun, LoadedInputs, ScaleInputs, ScaleOptions, Timer
@@ -70,6 +77,7 @@ def fused_to_dict(f: FusedScale) -> dict[str, Any]:
         ],
         "rejected": [{"image": i, "laser": la, "reason": why} for i, la, why in f.rejected],
     }
+    d.update(budget_dict(f))
     return d
 
 
@@ -182,9 +190,11 @@ def build_report(
     checks: dict[str, float],
     timer: Timer,
     pcm_joint: PcmJointResult | None = None,
+    model: Any = None,
 ) -> dict[str, Any]:
     """report.json content (docs/OUTPUTS.md: every key, with the inputs, options and the report's
-    checks); ``pcm_joint``: the joint fit behind ``fused["pcm_joint"]`` (its per-pair details)."""
+    checks); ``pcm_joint``: the joint fit behind ``fused["pcm_joint"]`` (its per-pair details);
+    ``model``: the run's ``MethodFusion`` (its model checks and the model intrinsics' error)."""
     report: dict[str, Any] = {
         "version": __version__,
         "scale": fused_to_dict(headline),
@@ -200,6 +210,7 @@ def build_report(
             "name": loaded.rig.name,
             "lasers": loaded.rig.names,
             "pairs": [list(p.lasers) for p in loaded.rig.pairs],
+            "pair_checks": pair_checks_dict(loaded.rig),
         },
         "model": {
             "format": loaded.model.source_format,
@@ -211,6 +222,11 @@ def build_report(
     }
     if pcm_joint is not None and "pcm_joint" in report["methods"]:
         report["methods"]["pcm_joint"].update(pcm_joint_to_dict(pcm_joint))
+    if model is not None:  # the reconstruction's own error (docs/OUTPUTS.md)
+        report["model_error"] = model_error_dict(model.intrinsics, runs, headline.value)
+        focal_sigma = (report["model_error"]["intrinsics"] or {}).get("cameras") or [{}]
+        report["model_checks"] = model_checks_dict(
+            model.model_checks, (focal_sigma[0].get("focal_sigma_pct") or math.nan) / 100)
     # Derived keys (per-image fused values, deviations, diagnostics, warnings) are computed
     # from the JSON form of the dict, so the HTML and report.json hold the same numbers.
     report = json.loads(json.dumps(report, allow_nan=False))
@@ -350,6 +366,7 @@ def write_outputs(
     final timings)."""
     t0 = time.perf_counter()
     write_estimates_csv(out / "estimates.csv", runs)
+    append_segment_rows(out / "estimates.csv", report)
     write_spots_csv(out / "spots.csv", {r.name: list(r.spots) for r in runs})
     if math.isfinite(headline.value):
         write_sim3(out / "transform.sim3", headline.value)

@@ -27,6 +27,13 @@ lens (‖O‖ = 0.165 m), all of one colour (``DemoDataOptions.laser_color``: re
   to each other, 1.5° off the axis (tilted in the camera's y–z plane, so the camera is
   equidistant from both beams) and form the one ``[[pair]]`` (separation 0.234 m) for PCM.
 - ``"parallel"``: four beams parallel to the optical axis; pairs (L1, L2) and (L4, L3).
+- ``"diverging"``: each beam tilted 3° outwards (away from the optical axis, along its origin's
+  direction): FCM responds to a focal-length error of the model almost one to one.
+
+``sfm_focal_error`` (δf / f): the SfM is run with the camera's focal length off by this much
+(held fixed), a reconstruction with its own error; the mesh is then the scene carried into that
+model by a smooth map fitted to its points (``synthetic/model_warp.py``), as an MVS mesh of that
+model would be, and the true scale is still the Umeyama fit of the camera centres.
 
 Spots are painted (``spots.paint_spot``, sigma = focal · ``beam_sigma_m`` / depth, in the rig's
 colour, white clipped core) only where the beam's first hit projects inside the image and is not
@@ -67,6 +74,7 @@ from sfm_laserscale.model import Camera, Pose
 from sfm_laserscale.provenance import progress_bar
 from sfm_laserscale.registration.mapping import mapping_options
 from sfm_laserscale.rig import Laser, Pair, Rig, rig_to_toml
+from sfm_laserscale.synthetic.model_warp import fit_model_warp
 from sfm_laserscale.synthetic.render import (
     RenderOptions,
     SceneRaycaster,
@@ -137,6 +145,7 @@ class DemoDataOptions:
     small: bool = False
     progress: bool = True
     colmap_log: bool = False  # let COLMAP print its INFO log
+    sfm_focal_error: float = 0.0  # δf / f of the focal length the SfM is given (held fixed)
 
 
 @dataclass(frozen=True)
@@ -257,8 +266,12 @@ def make_rig(kind: str = "rov", color: str = "red") -> Rig:
         dirs = {k: [0.0, 0.0, 1.0] for k in origins}
         pair_names = [("L1", "L2"), ("L4", "L3")]
         name = "synthetic parallel laser scaler"
+    elif kind == "diverging":
+        dirs = {k: _dir(3.0, float(np.degrees(np.arctan2(o[1], o[0])))) for k, o in origins.items()}
+        pair_names = []
+        name = "synthetic diverging laser scaler"
     else:
-        raise InputError(f"unknown demo rig {kind!r} (known: rov, parallel)")
+        raise InputError(f"unknown demo rig {kind!r} (known: rov, parallel, diverging)")
     lasers = tuple(Laser(name=k, origin=np.array(origins[k]), direction=np.array(dirs[k]),
                          color=color) for k in origins)
     pairs = tuple(Pair(lasers=p, separation=_separation(origins[p[0]], origins[p[1]],
@@ -676,7 +689,7 @@ def _truth(options: DemoDataOptions, camera: Camera, ref: _Views, las: _Views,
         "alignment_rms_m": align.rms_m, "alignment_max_m": align.max_m,
         "camera": {"model": camera.model, "width": camera.width, "height": camera.height,
                    "params": [float(v) for v in camera.params]},
-        "rig": options.rig, "seed": options.seed,
+        "rig": options.rig, "seed": options.seed, "sfm_focal_error": options.sfm_focal_error,
         "sfm": {"n_images": stats.n_images, "n_registered": stats.n_registered,
                 "n_points": stats.n_points, "n_models": stats.n_models, "n_pairs": n_pairs,
                 "mean_reprojection_error_px": stats.mean_reprojection_error_px,
@@ -728,13 +741,20 @@ def make_demo_dataset(out_dir: Path, options: DemoDataOptions = DemoDataOptions(
     (out_dir / "pairs.txt").write_text(
         "".join(f"{ref.names[i]} {ref.names[j]}\n" for i, j in pairs), encoding="utf-8")
     timings["pairs"] = time.perf_counter() - t0
+    sfm_camera = replace(camera, params=camera.params * np.array(
+        [1.0 + options.sfm_focal_error] * 2 + [1.0] * (len(camera.params) - 2)))
     rec, stats, sfm_t = run_sfm(out_dir / "images", ref.names, out_dir / "database.db",
-                                out_dir / "sparse" / "0", camera, out_dir / "pairs.txt", options)
+                                out_dir / "sparse" / "0", sfm_camera, out_dir / "pairs.txt",
+                                options)
     timings.update(sfm_t)
     t0 = time.perf_counter()
     align = align_model({n: p.center for n, p in zip(ref.names, ref.poses, strict=True)},
                         model_centres(rec))
-    write_mesh_ply(out_dir / "mesh.ply", align.apply(scene.vertices), scene.triangles,
+    mesh_model = align.apply(scene.vertices)
+    if options.sfm_focal_error != 0.0:  # the model is no similarity of the world
+        mesh_model = fit_model_warp(rec, camera, dict(zip(ref.names, ref.poses, strict=True))
+                                    ).apply(scene.vertices)
+    write_mesh_ply(out_dir / "mesh.ply", mesh_model, scene.triangles,
                    vertex_colors(scene, options.gamma))
     (out_dir / "rig.toml").write_text(rig_to_toml(rig), encoding="utf-8")
     truth = _truth(options, camera, ref, las, align, stats, len(pairs))

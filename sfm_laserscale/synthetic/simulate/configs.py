@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -16,12 +16,12 @@ from sfm_laserscale.fusion import FusionOptions
 from sfm_laserscale.model import Camera
 from sfm_laserscale.raycast import SpotCastOptions
 from sfm_laserscale.registration.options import PoseOptions
-from sfm_laserscale.rig import Rig, rig_from_dict
+from sfm_laserscale.rig import Pair, Rig, rig_from_dict
 from sfm_laserscale.synthetic.dataset import make_rig
 from sfm_laserscale.uncertainty import EstimationOptions
 
 MODES = ("grid", "random", "noise-table")
-CONFIGS = ("A", "B", "C")
+CONFIGS = ("A", "B", "C", "A-adjacent", "C-nonparallel")
 AREAS = ("smooth", "rough")
 
 #: Defaults per mode: configurations, trials, σ_f (px), σ_l (px).
@@ -73,8 +73,19 @@ def config_rig(name: str) -> Rig:
     apart, origins (±0.05, ∓0.10); pair L1+L2 tilted 2° towards −y, pair L3+L4 3° towards +y
     (tilts in the y–z plane keep the camera equidistant from both beams of a pair). C: the
     demo's misaligned ROV scaler (``dataset.make_rig("rov")``): origins 16.5 cm from the centre,
-    directions 1.5–2.8° off the axis, one parallel pair L1+L2.
+    directions 1.5–2.8° off the axis, one parallel pair L1+L2. ``A-adjacent``: A with its four
+    adjacent pairs (L1+L3, L3+L2, L2+L4, L4+L1, 0.141 m) for PCM. ``C-nonparallel``: C with
+    L3+L4 declared a pair too, as the paper's configuration C has it: those beams are 4.8°
+    apart, so PCM refuses that pair (rig_checks.py).
     """
+    if name == "A-adjacent":
+        a = config_rig("A")
+        s = float(np.hypot(0.1, 0.1))
+        return replace(a, name="A-adjacent", pairs=tuple(
+            Pair((x, y), s) for x, y in (("L1", "L3"), ("L3", "L2"), ("L2", "L4"), ("L4", "L1"))))
+    if name == "C-nonparallel":
+        c = make_rig("rov")
+        return replace(c, name="C-nonparallel", pairs=(*c.pairs, Pair(("L3", "L4"), 0.234)))
     if name == "A":
         axis = [0.0, 0.0, 1.0]
         return _rig("A", {"L1": (0.1, 0.0, 0.0), "L2": (-0.1, 0.0, 0.0),
@@ -144,7 +155,7 @@ class SimulationOptions:
             raise InputError(f"mode must be one of {', '.join(MODES)}, got {self.mode!r}")
         for c in self.configs or ():
             if c not in CONFIGS:
-                raise InputError(f"configuration must be A, B or C, got {c!r}")
+                raise InputError(f"configuration must be one of {', '.join(CONFIGS)}, got {c!r}")
         if not self.distances_m or min(self.distances_m) <= 0:
             raise InputError("distances must be positive metres")
         if self.trials is not None and self.trials < 1:
