@@ -8,7 +8,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
-import os
 import re
 import shutil
 import sys
@@ -22,7 +21,7 @@ from typing import Any
 from tqdm import tqdm
 
 from sfm_laserscale import __version__
-from sfm_laserscale.io.outputs import pid_alive
+from sfm_laserscale.io.run_lock import claim_if_abandoned, create_lock
 
 logger = logging.getLogger(__name__)
 _CHUNK = 1 << 22
@@ -173,12 +172,16 @@ _GLOG_TIME = re.compile(r"[IWEF](\d{8} \d\d:\d\d:\d\d\.\d{6}) ")
 
 
 def _remove_stale_glog_dirs(parent: Path) -> None:
-    """Remove the temporary glog folders of runs whose process is gone (killed runs cannot
-    clean up after themselves); the folder name holds the process id."""
-    for d in parent.glob(_GLOG_DIR_PREFIX + "*_*"):
-        pid = d.name[len(_GLOG_DIR_PREFIX):].split("_", 1)[0]
-        if pid.isdigit() and int(pid) != os.getpid() and not pid_alive(int(pid)):
-            shutil.rmtree(d, ignore_errors=True)
+    """Remove the temporary glog folders of runs that are gone (killed runs cannot clean up
+    after themselves): each folder's run holds the lock ``<folder>.lock`` while it lives
+    (:mod:`sfm_laserscale.io.run_lock`; no process ids: in a container every run is pid 1)."""
+    for d in parent.glob(_GLOG_DIR_PREFIX + "*"):
+        if not d.is_dir() or d.is_symlink():
+            continue
+        lock = claim_if_abandoned(d.with_name(d.name + ".lock"))
+        if lock is not None:
+            with lock:
+                shutil.rmtree(d, ignore_errors=True)
 
 
 def _stderr_threshold(logging_: Any) -> int:
@@ -200,7 +203,9 @@ def captured_colmap_log() -> Iterator[ColmapLog]:
                                          "stderrthreshold")}
     threshold = _stderr_threshold(lg)
     _remove_stale_glog_dirs(Path(tempfile.gettempdir()))
-    folder = Path(tempfile.mkdtemp(prefix=f"{_GLOG_DIR_PREFIX}{os.getpid()}_"))
+    token, lock = create_lock(Path(tempfile.gettempdir()), _GLOG_DIR_PREFIX, ".lock")
+    folder = lock.path.with_name(f"{_GLOG_DIR_PREFIX}{token}")  # guarded by <folder>.lock
+    folder.mkdir()
     log = ColmapLog(folder)
     try:
         lg.logtostderr, lg.alsologtostderr = False, False
@@ -212,6 +217,7 @@ def captured_colmap_log() -> Iterator[ColmapLog]:
         for key, value in saved.items():
             setattr(lg, key, value)
         shutil.rmtree(folder, ignore_errors=True)
+        lock.release()
 
 
 def glog_lines(text: str) -> list[str]:
