@@ -36,7 +36,7 @@ from sfm_laserscale.detection.beam_lines import (
     rig_with_learned_lines,
 )
 from sfm_laserscale.errors import InputError
-from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
+from sfm_laserscale.io.images import LaserImage, damage, find_laser_images, read_rgb
 from sfm_laserscale.io.models import load_model
 from sfm_laserscale.io.outputs import staged_output_dir
 from sfm_laserscale.io.spots_csv import write_spots_csv
@@ -159,11 +159,12 @@ def detect_many(frames: Sequence[Frame], rig: Rig, options: DetectRunOptions) ->
     return ManyResult(second, learned, search_rig)
 
 
-def _image_record(name: str, res: DetectionResult | None, review: float) -> dict[str, Any]:
-    """detections.json entry of one image."""
+def _image_record(name: str, res: DetectionResult | None, review: float,
+                  reason: str | None = None) -> dict[str, Any]:
+    """detections.json entry of one image (``reason``: why an image was not searched)."""
     if res is None:
-        return {"name": name, "readable": False, "spots": [], "missing": {},
-                "num_candidates": 0}
+        return {"name": name, "readable": False, "reason": reason or "not a readable image",
+                "spots": [], "missing": {}, "num_candidates": 0}
     return {
         "name": name, "readable": True,
         "spots": [{"laser": s.laser, "x": s.x, "y": s.y, "score": s.score,
@@ -216,20 +217,32 @@ def _summary(spots: dict[str, tuple[Spot, ...]], n_images: int, review: int,
     return text
 
 
+def _damaged(images: Sequence[LaserImage]) -> dict[str, str]:
+    """Image name -> why its data is damaged (a truncated JPEG), for the readable images."""
+    found = {}
+    for li in images:
+        why = damage(li.path) if li.camera is not None else None
+        if why is not None:
+            logger.warning("%s: %s; reported and skipped", li.path, why)
+            found[li.name] = why
+    return found
+
+
 def run(inputs: DetectInputs, out_dir: Path,
         options: DetectRunOptions = DetectRunOptions(),  # noqa: B008 (frozen)
         overwrite: bool = False) -> DetectRunResult:
     """Detect spots in every image and write spots.csv, detections.json and overlays."""
     rig = load_rig(inputs.rig)
     images = find_laser_images(list(inputs.images), _camera_model(inputs))
-    frames = [Frame(li.name, li.camera, functools.partial(read_rgb, li.path))
-              for li in images if li.camera is not None]
+    damaged = _damaged(images)
+    frames = [Frame(li.name, li.camera, functools.partial(read_rgb, li.path, check=False))
+              for li in images if li.camera is not None and li.name not in damaged]
     many = detect_many(frames, rig, options)
     results, learned, search_rig = many.results, many.learned, many.search_rig
     spots = {li.name: results[li.name].spots for li in images if li.name in results}
     review = sum(s.score < options.review_score for v in spots.values() for s in v)
-    record = {"images": [_image_record(li.name, results.get(li.name), options.review_score)
-                         for li in images],
+    record = {"images": [_image_record(li.name, results.get(li.name), options.review_score,
+                                       damaged.get(li.name)) for li in images],
               "learned_beam_lines": _lines_record(learned),
               "review_score": options.review_score}
     with staged_output_dir(out_dir, overwrite) as tmp:

@@ -163,7 +163,9 @@ def detect_and_register(image: LaserImage, loaded: LoadedInputs, options: ScaleO
     try:
         rgb = read_rgb(image.path)
     except InputError as exc:
-        return _image_run(image, f"cannot read image: {exc.problem}")
+        logger.warning("laser image %s: %s; reported and skipped", image.path, exc.problem)
+        damaged = exc.problem.startswith("damaged")
+        return _image_run(image, exc.problem if damaged else f"cannot read image: {exc.problem}")
     with timer("detect"):
         spots, det, spot_reasons = _spots_for(image.name, rgb, camera, loaded, options)
     if loaded.index is None:

@@ -300,7 +300,7 @@ def _write_overlays(
     for run in progress_bar(options.progress, "overlays", iterable=runs, unit="img"):
         if run.camera is None:
             continue
-        rgb = read_rgb(run.path)
+        rgb = read_rgb(run.path, check=False)  # a damaged image's overlay shows the damage
         scales, rejected = _overlay_labels(by_name[run.name])
         points, pose_rejected = _registration_points(run)
         img = draw_overlay(
