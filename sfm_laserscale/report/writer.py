@@ -30,6 +30,7 @@ from sfm_laserscale.provenance import progress_bar
 from sfm_laserscale.report.analysis import ReportChecksOptions, annotate
 from sfm_laserscale.report.html import render_html
 from sfm_laserscale.report.overlays import draw_overlay, near_misses, reprojected_points
+from sfm_laserscale.report.schema import SCHEMA_VERSION, UNITS
 from sfm_laserscale.report.validate import check_html
 from sfm_laserscale.run_types import ImageRun, LoadedInputs, ScaleInputs, ScaleOptions, Timer
 
@@ -187,6 +188,8 @@ def build_report(
     checks); ``pcm_joint``: the joint fit behind ``fused["pcm_joint"]`` (its per-pair details)."""
     report: dict[str, Any] = {
         "version": __version__,
+        "schema_version": SCHEMA_VERSION,  # report.schema.json (report/schema.py)
+        "units": dict(UNITS),
         "scale": fused_to_dict(headline),
         "methods": {m: fused_to_dict(f) for m, f in fused.items()},
         "images": [_image_dict(r) for r in runs],
