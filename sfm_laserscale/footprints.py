@@ -19,10 +19,10 @@ Per image (model units; ``Footprint.metric`` converts with the scale s: areas ×
 - ``distance``: the median camera–hit distance of the grid's rays that hit;
 - ``on_mesh_fraction``: the share of the image's cells counted in ``area``.
 
-Large meshes: the rays of a group of images are cast on the mesh cropped exactly to them
-(:func:`sfm_laserscale.raycast.crop_for_rays`), so no caster is built on more than about
-``max_crop_triangles`` triangles at once (images are grouped in the given order: survey order
-keeps a group's footprints together).
+Large meshes (more than ``max_crop_triangles``): the rays of a group of images are cast on the
+mesh cropped exactly to them (:func:`sfm_laserscale.raycast.crop_for_rays`), so no caster is
+built on more than about that many triangles at once (images are grouped in the given order:
+survey order keeps a group's footprints together); smaller meshes get one caster.
 """
 
 from __future__ import annotations
@@ -38,11 +38,12 @@ from numpy.typing import NDArray
 
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.model import Camera, Pose, SparseModel
-from sfm_laserscale.raycast import MeshRaycaster, crop_for_rays, pixel_rays
+from sfm_laserscale.raycast import MeshRaycaster, RaycastResult, crop_for_rays, pixel_rays
 
 logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
+BATCH_IMAGES = 64  # images whose rays are cast in one call on a whole-mesh caster
 
 
 @dataclass(frozen=True)
@@ -136,16 +137,18 @@ def _quad_areas(a: F64, b: F64, c: F64, d: F64, eye: F64,
     return area, ok
 
 
-def footprint_of(view: FootprintView, caster: MeshRaycaster,
-                 options: FootprintOptions) -> Footprint:
-    """The footprint of one image with a pose on the mesh of ``caster``."""
-    camera, pose = view.camera, view.cam_from_world
-    if camera is None or pose is None:
+def view_rays(camera: Camera, cam_from_world: Pose, options: FootprintOptions) -> tuple[F64, F64]:
+    """The rays of one image's grid and centre square: origins (N, 3), unit directions (N, 3)."""
+    return pixel_rays(camera, cam_from_world.inverse(), grid_pixels(camera, options))
+
+
+def measure(view: FootprintView, res: RaycastResult, options: FootprintOptions) -> Footprint:
+    """The footprint of one image from the cast of its :func:`view_rays`."""
+    if view.camera is None or view.cam_from_world is None:
         return _none(view, options)
+    camera = view.camera
     cols, rows = grid_shape(camera, options.grid_columns)
-    origins, dirs = pixel_rays(camera, pose.inverse(), grid_pixels(camera, options))
-    res = caster.cast(origins, dirs)
-    xyz, hit, eye = res.xyz, res.hit, pose.center
+    xyz, hit, eye = res.xyz, res.hit, view.cam_from_world.center
     n_grid = (rows + 1) * (cols + 1)
     cos_min = math.cos(math.radians(options.max_incidence_deg))
     idx = np.arange(n_grid).reshape(rows + 1, cols + 1)
@@ -171,6 +174,28 @@ def footprint_of(view: FootprintView, caster: MeshRaycaster,
         reason=None if counted.any() else "the image's footprint is not on the mesh")
 
 
+def _measure_batch(views: Sequence[FootprintView], caster: MeshRaycaster | None,
+                   vertices: NDArray[np.floating], triangles: NDArray[np.integer],
+                   options: FootprintOptions) -> list[Footprint]:
+    """Footprints of posed views, their rays cast at once: on ``caster``, or (None) on the
+    mesh cropped exactly to these rays."""
+    rays = [view_rays(v.camera, v.cam_from_world, options)  # type: ignore[arg-type]
+            for v in views]
+    origins = np.concatenate([o for o, _ in rays])
+    dirs = np.concatenate([d for _, d in rays])
+    if caster is None:
+        caster = crop_for_rays(vertices, triangles, origins, dirs).raycaster()
+    res = caster.cast(origins, dirs)
+    bounds = np.cumsum([0] + [len(o) for o, _ in rays])
+    return [measure(v, _rows(res, bounds[k], bounds[k + 1]), options)
+            for k, v in enumerate(views)]
+
+
+def _rows(res: RaycastResult, a: int, b: int) -> RaycastResult:
+    return RaycastResult(res.hit[a:b], res.xyz[a:b], res.normal[a:b], res.distance[a:b],
+                         res.primitive_id[a:b])
+
+
 def _none(view: FootprintView, options: FootprintOptions) -> Footprint:
     grid = ((0, 0) if view.camera is None else grid_shape(view.camera, options.grid_columns))
     return Footprint(view.image, view.kind, math.nan, math.nan, math.nan, math.nan, math.nan,
@@ -188,20 +213,16 @@ def footprints(views: Sequence[FootprintView], vertices: NDArray[np.floating],
                progress: Callable[[list[list[int]]], Iterable[list[int]]] | None = None
                ) -> tuple[Footprint, ...]:
     """Every view's footprint on the mesh (model units), in the views' order."""
-    posed = {i: (v.camera, v.cam_from_world) for i, v in enumerate(views)
-             if v.camera is not None and v.cam_from_world is not None}
-    out = {i: _none(v, options) for i, v in enumerate(views) if i not in posed}
-    order = sorted(posed)
-    size = _groups(len(order), len(triangles), options)
-    batches = [order[k:k + size] for k in range(0, len(order), size)]
+    posed = [i for i, v in enumerate(views)
+             if v.camera is not None and v.cam_from_world is not None]
+    out = {i: _none(v, options) for i, v in enumerate(views) if i not in set(posed)}
+    whole = len(triangles) <= options.max_crop_triangles  # one caster on the whole mesh
+    caster = MeshRaycaster(vertices, triangles) if whole and posed else None
+    size = BATCH_IMAGES if whole else _groups(len(posed), len(triangles), options)
+    batches = [posed[k:k + size] for k in range(0, len(posed), size)]
     for batch in (progress(batches) if progress is not None else batches):
-        rays = [pixel_rays(cam, pose.inverse(), grid_pixels(cam, options))
-                for cam, pose in (posed[i] for i in batch)]
-        crop = crop_for_rays(vertices, triangles, np.concatenate([o for o, _ in rays]),
-                             np.concatenate([d for _, d in rays]))
-        caster = crop.raycaster()
-        for i in batch:
-            out[i] = footprint_of(views[i], caster, options)
+        found = _measure_batch([views[i] for i in batch], caster, vertices, triangles, options)
+        out.update(zip(batch, found, strict=True))
     return tuple(out[i] for i in range(len(views)))
 
 

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from sfm_laserscale.detection import DetectionOptions, DetectionResult
+from sfm_laserscale.footprints import FootprintOptions
 from sfm_laserscale.fusion import FusionOptions
 from sfm_laserscale.io.images import LaserImage
 from sfm_laserscale.io.meshes.mesh import TriangleMesh
@@ -68,6 +69,7 @@ class ScaleOptions:
     mesh_check_radius: float = 0.01
     estimation: EstimationOptions = field(default_factory=EstimationOptions)
     fusion: FusionOptions = field(default_factory=FusionOptions)
+    footprints: FootprintOptions = field(default_factory=FootprintOptions)  # footprints.csv
 
 
 @dataclass(frozen=True)
@@ -121,7 +123,7 @@ class Timer:
             k: round(self.seconds.get(k, 0.0), 4)
             for k in ("load", "detect", "register", "raycast", "estimate", "write")
         }
-        for k in ("sift_here", "sift_in_workers"):  # when worker processes shared the SIFT
+        for k in ("sift_here", "sift_in_workers", "footprints"):  # when these ran
             if k in self.seconds:
                 out[k] = round(self.seconds[k], 4)
         out["total"] = round(time.perf_counter() - self._start, 4)

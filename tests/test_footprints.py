@@ -5,6 +5,7 @@ same scene moved by a similarity (issue #20)."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -16,6 +17,8 @@ from sfm_laserscale.footprints import (
     footprints,
 )
 from sfm_laserscale.geometry import rotmat_from_qvec
+from sfm_laserscale.io.footprints_csv import FOOTPRINT_COLUMNS, read_footprints_csv
+from sfm_laserscale.io.models import load_model
 from sfm_laserscale.model import Camera, Pose
 
 W, H, FX, FY = 640, 480, 500.0, 520.0
@@ -151,3 +154,36 @@ def test_large_meshes_are_cast_in_groups_with_the_same_result() -> None:
     grouped = footprints(views, *mesh, FootprintOptions(max_crop_triangles=500))
     for a, b in zip(whole, grouped, strict=True):
         assert b.area == pytest.approx(a.area, rel=1e-12) and a.area > 0
+
+
+# ---------------------------------------------------------------------------- in a scale run
+
+def test_scale_writes_footprints_of_every_image(small_scale_run: Any, small_dataset: Any) -> None:
+    """footprints.csv: a row per laser image and per model image, the metric values of the
+    run's footprints at its scale, and report.json's distribution of them."""
+    out, s = small_scale_run.out_dir, small_scale_run.scale.value
+    rows = read_footprints_csv(out / "footprints.csv")
+    laser = sorted(p.name for p in small_dataset.laser_images_dir.iterdir())
+    model = sorted(im.name for im in load_model(small_dataset.model_dir).images.values())
+    assert [r["image"] for r in rows] == laser + model
+    assert list(rows[0]) == list(FOOTPRINT_COLUMNS)
+    for row, fp in zip(rows, small_scale_run.footprints, strict=True):
+        assert row["area_m2"] == pytest.approx(fp.area * s ** 2, rel=1e-5)
+        assert row["gsd_mm_median"] == pytest.approx(fp.gsd_median * s * 1e3, rel=1e-5)
+        assert 0 < row["footprint_on_mesh_fraction"] <= 1
+    # a facing view: area ≈ (W·H) (D/f)² with the image's own range and GSD
+    for row in rows:
+        assert row["area_m2"] == pytest.approx(
+            row["gsd_mm_median"] ** 2 * 1e-6 * 640 * 480 * row["footprint_on_mesh_fraction"],
+            rel=0.35)
+    report = small_scale_run.report
+    block = report["footprints"]
+    assert block["n_images"] == len(rows) and block["n_laser_images"] == len(laser)
+    assert block["area_m2"]["median"] == pytest.approx(
+        float(np.median([r["area_m2"] for r in rows])), rel=1e-5)  # the CSV's 6 digits
+    # the laser images' range agrees with the range of their spots' hits
+    dist = {im["name"]: im.get("distance_m") for im in report["images"]}
+    for row in rows[:len(laser)]:
+        if dist[row["image"]] is not None:
+            assert row["distance_m"] == pytest.approx(dist[row["image"]], rel=0.25)
+    assert 'id="footprints"' in (out / "report.html").read_text()

@@ -21,7 +21,15 @@ import numpy as np
 from sfm_laserscale import __version__
 from sfm_laserscale.detection import DetectionResult, detect_spots
 from sfm_laserscale.errors import InputError
+from sfm_laserscale.footprints import (
+    Footprint,
+    FootprintView,
+    footprint_summary,
+    footprints,
+    model_views,
+)
 from sfm_laserscale.fusion import FusedScale, fuse
+from sfm_laserscale.io.footprints_csv import write_footprints_csv
 from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
 from sfm_laserscale.io.meshes.mesh import TriangleMesh, load_mesh
 from sfm_laserscale.io.models import load_model
@@ -78,6 +86,7 @@ class ScaleResult:
     report: dict[str, Any]
     out_dir: Path
     summary: str
+    footprints: tuple[Footprint, ...] = ()  # every laser and model image's, in model units
 
 
 def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
@@ -344,12 +353,30 @@ def register_all(loaded: LoadedInputs, options: ScaleOptions, timer: Timer) -> l
     return runs
 
 
+def image_footprints(runs: Sequence[ImageRun], loaded: LoadedInputs,
+                     options: ScaleOptions) -> tuple[Footprint, ...]:
+    """The footprint on the whole mesh of every laser image (registered ones; the others with
+    their reason) and of every model image, in model units (footprints.py)."""
+    if not options.footprints.enabled or loaded.mesh is None:
+        return ()
+    views = [FootprintView(r.name, "laser", r.camera, None if v is None else v[1],
+                           None if v is not None else r.reason or "not registered")
+             for r in runs for v in [_view(r)]]
+    views += model_views(loaded.model)
+    return footprints(views, loaded.mesh.vertices, loaded.mesh.triangles, options.footprints,
+                      progress=lambda batches: progress_bar(
+                          options.progress, "footprints", iterable=batches, unit="group"))
+
+
 def _estimate_all(
     inputs: ScaleInputs, loaded: LoadedInputs, runs: list[ImageRun], options: ScaleOptions,
     timer: Timer,
-) -> tuple[LoadedInputs, list[ImageRun], MethodFusion, dict[str, Any]]:
-    """Crop the mesh to the rays, cast and estimate every image, fuse, check the mesh against
-    the model: (inputs without the full mesh, runs, fusion, checks)."""
+) -> tuple[LoadedInputs, list[ImageRun], MethodFusion, dict[str, Any], tuple[Footprint, ...]]:
+    """Measure every image's footprint, crop the mesh to the rays, cast and estimate every
+    image, fuse, check the mesh against the model: (inputs without the full mesh, runs,
+    fusion, checks, footprints)."""
+    with timer("footprints"):
+        found = image_footprints(runs, loaded, options)
     with timer("raycast"):
         crop = crop_mesh(runs, loaded, options)
         loaded = replace(loaded, mesh=None)  # the crop is all the rest needs
@@ -366,7 +393,16 @@ def _estimate_all(
         mesh_check_points(runs, options, loaded.model.extent), caster, loaded.model.extent,
         lambda: load_mesh(inputs.mesh))}
     logger.info("timings so far: %s", timer.as_dict())
-    return loaded, runs, fusion, checks
+    return loaded, runs, fusion, checks, found
+
+
+def write_footprints(out: Path, found: Sequence[Footprint], scale: float) -> dict[str, Any] | None:
+    """footprints.csv in ``out`` and report.json's ``footprints`` block, when there is a scale
+    and footprints were measured (else nothing, None)."""
+    if not found or not np.isfinite(scale):
+        return None
+    write_footprints_csv(out / "footprints.csv", [f.metric(scale) for f in found])
+    return footprint_summary(found, scale)
 
 
 def _provenance_inputs(inputs: ScaleInputs, loaded: LoadedInputs) -> list[Path | None]:
@@ -402,12 +438,14 @@ def run(
         # the core they leave, beside the rest of the run
         hashed = _provenance_inputs(inputs, loaded)
         with digests_in_background(hashed) as digests:
-            loaded, runs, fusion, checks = _estimate_all(inputs, loaded, runs, options, timer)
+            loaded, runs, fusion, checks, found = _estimate_all(inputs, loaded, runs, options,
+                                                                timer)
             headline, fused, joint = fusion.headline, fusion.methods, fusion.pcm_joint
             with staged_output_dir(out_dir, overwrite) as tmp, timer("write"):
                 report = build_report(inputs, options, loaded, runs, headline, fused, checks, timer,
                                       pcm_joint=joint)
                 report["provenance"] = provenance(hashed, options, digests)
+                report["footprints"] = write_footprints(tmp, found, headline.value)
                 write_outputs(tmp, inputs, loaded, runs, headline, report, options, timer)
                 logger.info("run finished: %s", report["timings_s"])
                 glog = merged_glog(colmap_log.lines(), worker_glog)
@@ -422,4 +460,5 @@ def run(
         report=report,
         out_dir=out_dir,
         summary=summary,
+        footprints=found,
     )
