@@ -262,21 +262,26 @@ def test_run_log_without_pycolmap_lines() -> None:
 
 
 def test_stale_glog_folders_of_dead_runs_are_removed(tmp_path: Path) -> None:
-    """A killed run leaves its temporary glog folder; the next run removes it (by pid)."""
-    from sfm_laserscale.provenance import _remove_stale_glog_dirs
+    """A killed run leaves its temporary glog folder; the next run removes it: a folder whose
+    lock (``<folder>.lock``) can be taken or is missing (no pid compared: pid 1 in a container
+    is always alive)."""
+    from sfm_laserscale.io.run_lock import create_lock
+    from sfm_laserscale.provenance import _GLOG_DIR_PREFIX, _remove_stale_glog_dirs
 
-    dead = subprocess.Popen([sys.executable, "-c", "pass"])
-    dead.wait()
+    token, dead_lock = create_lock(tmp_path, _GLOG_DIR_PREFIX, ".lock")
+    dead_lock.release(unlink=False)  # its process died: the file stays, the lock is gone
+    live_token, live_lock = create_lock(tmp_path, _GLOG_DIR_PREFIX, ".lock")
     names = {
-        "dead": f"sfm_laserscale_glog_{dead.pid}_x1",
-        "mine": f"sfm_laserscale_glog_{os.getpid()}_x2",
-        "parent": f"sfm_laserscale_glog_{os.getppid()}_x3",
+        "dead": f"{_GLOG_DIR_PREFIX}{token}",
+        "old version": f"{_GLOG_DIR_PREFIX}1_x1",  # no lock file: an older version's, or gone
+        "live": f"{_GLOG_DIR_PREFIX}{live_token}",
         "other": "unrelated_123_x4",
     }
     for name in names.values():
         (tmp_path / name).mkdir()
         (tmp_path / name / "pycolmap-1.log").write_text("I... msg\n")
     _remove_stale_glog_dirs(tmp_path)
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
-        names[k] for k in ("mine", "parent", "other")
-    )
+    left = sorted(p.name for p in tmp_path.iterdir() if p.is_dir())
+    assert left == sorted(names[k] for k in ("live", "other"))
+    assert live_lock.path.exists() and not dead_lock.path.exists()
+    live_lock.release()

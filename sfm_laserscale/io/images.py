@@ -108,16 +108,20 @@ def damage(path: Path) -> str | None:
     warning on stderr; the whole entropy-coded stream is read here (Pillow, at 1/8 scale: a
     third of a full decode) and its end checked. Other formats: OpenCV refuses them whole."""
     try:
-        with PILImage.open(path) as im:
-            if im.format != "JPEG":
-                return None
+        im = PILImage.open(path)
+    except (UnidentifiedImageError, OSError, ValueError):
+        return None  # not an image Pillow knows: OpenCV decides (not readable at all)
+    with im:
+        if im.format != "JPEG":
+            return None
+        try:
             im.draft("RGB", (max(1, im.size[0] // 8), max(1, im.size[1] // 8)))
             im.load()
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
-        why = str(exc) or type(exc).__name__
-        if "truncated" in why:
-            return f"damaged image: the JPEG data is cut short, the file is truncated ({why})"
-        return f"damaged image: the JPEG data does not decode ({why})"
+        except (OSError, ValueError, SyntaxError) as exc:
+            why = str(exc) or type(exc).__name__
+            if "truncated" in why:
+                return f"damaged image: the JPEG data is cut short, the file is truncated ({why})"
+            return f"damaged image: the JPEG data does not decode ({why})"
     return None
 
 
