@@ -18,9 +18,9 @@ from typing import Any
 
 import click
 
-from sfm_laserscale import __version__
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.lifecycle import Interrupted, signals_as_exceptions
+from sfm_laserscale.version import __version__
 
 logger = logging.getLogger("sfm_laserscale")
 

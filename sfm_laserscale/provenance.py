@@ -20,8 +20,8 @@ from typing import Any
 
 from tqdm import tqdm
 
-from sfm_laserscale import __version__
 from sfm_laserscale.io.run_lock import claim_if_abandoned, create_lock
+from sfm_laserscale.version import __version__
 
 logger = logging.getLogger(__name__)
 _CHUNK = 1 << 22
@@ -218,6 +218,29 @@ def captured_colmap_log() -> Iterator[ColmapLog]:
             setattr(lg, key, value)
         shutil.rmtree(folder, ignore_errors=True)
         lock.release()
+
+
+class _NoGlog:
+    """Stands in for :class:`ColmapLog` when nothing is captured."""
+
+    def lines(self) -> list[str]:
+        return []
+
+
+@contextmanager
+def glog_without_files() -> Iterator[_NoGlog]:
+    """During the block pycolmap's (glog) messages go to stderr only, warnings and up, and no
+    log file is written (glog's default writes one per process into the temporary folder):
+    a run that writes nothing (the Python API without ``out``). Previous settings come back."""
+    import pycolmap
+
+    lg = pycolmap.logging
+    saved = (lg.logtostderr, lg.minloglevel)
+    lg.logtostderr, lg.minloglevel = True, max(int(lg.minloglevel), 1)
+    try:
+        yield _NoGlog()
+    finally:
+        lg.logtostderr, lg.minloglevel = saved
 
 
 def glog_lines(text: str) -> list[str]:

@@ -13,7 +13,6 @@ from typing import Any
 import pytest
 from report_schema_check import schema_problems
 
-from sfm_laserscale import __version__
 from sfm_laserscale.report.schema import (
     SCHEMA_VERSION,
     UNITS,
@@ -21,6 +20,7 @@ from sfm_laserscale.report.schema import (
     report_schema,
     validate_report,
 )
+from sfm_laserscale.version import __version__
 
 REPO = Path(__file__).resolve().parents[1]
 

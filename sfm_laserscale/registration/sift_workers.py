@@ -313,6 +313,11 @@ def main() -> None:
     # the kernel kills this worker when the run dies, even by SIGKILL; Ctrl-C is the run's
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     die_with_parent(int(os.environ.get(_PARENT_ENV, os.getppid())))
+    # pycolmap's (glog) lines to stderr, which the parent keeps for run.log: glog's default
+    # would also leave a log file per worker in the temporary folder, never removed
+    import pycolmap
+
+    pycolmap.logging.logtostderr = True
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     _serve_requests(sys.stdin.buffer, out)

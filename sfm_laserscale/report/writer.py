@@ -9,14 +9,13 @@ import json
 import logging
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from sfm_laserscale import __version__
 from sfm_laserscale.fusion import FusedScale
 from sfm_laserscale.geometry import qvec_from_rotmat
 from sfm_laserscale.io.colmap_write import write_scaled_colmap_model
@@ -33,6 +32,7 @@ from sfm_laserscale.report.overlays import draw_overlay, near_misses, reprojecte
 from sfm_laserscale.report.schema import SCHEMA_VERSION, UNITS
 from sfm_laserscale.report.validate import check_html
 from sfm_laserscale.run_types import ImageRun, LoadedInputs, ScaleInputs, ScaleOptions, Timer
+from sfm_laserscale.version import __version__
 
 logger = logging.getLogger(__name__)
 
@@ -348,16 +348,22 @@ def write_outputs(
     report: dict[str, Any],
     options: ScaleOptions,
     timer: Timer,
+    write_scaled: Callable[[Path, float], None] | None = None,
 ) -> None:
     """Every output file of ``scale`` (docs/OUTPUTS.md) into ``out`` (report.json last, with
-    final timings)."""
+    final timings). ``write_scaled(scaled_dir, scale)``: writes ``scaled/`` instead of the
+    rescaling of the input files (a model or mesh given in memory, commands/scale.py)."""
     t0 = time.perf_counter()
     write_estimates_csv(out / "estimates.csv", runs)
     write_spots_csv(out / "spots.csv", {r.name: list(r.spots) for r in runs})
     if math.isfinite(headline.value):
         write_sim3(out / "transform.sim3", headline.value)
         write_matrix_4x4(out / "transform_4x4.txt", headline.value)
-        _write_scaled(out, inputs, loaded, headline.value, options.progress)
+        if write_scaled is None:
+            _write_scaled(out, inputs, loaded, headline.value, options.progress)
+        else:
+            (out / "scaled").mkdir()
+            write_scaled(out / "scaled", headline.value)
     overlays = _write_overlays(out, runs, loaded, options, report) if options.overlays else {}
     for im in report["images"]:
         im["overlay"] = overlays.get(im["name"])

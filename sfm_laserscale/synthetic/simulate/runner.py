@@ -15,7 +15,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from sfm_laserscale import __version__
 from sfm_laserscale.lifecycle import process_pool
 from sfm_laserscale.model import Camera
 from sfm_laserscale.raycast import MeshRaycaster
@@ -40,6 +39,7 @@ from sfm_laserscale.synthetic.simulate.stats import grid_maps, overall, summariz
 from sfm_laserscale.synthetic.simulate.tables import markdown_report
 from sfm_laserscale.synthetic.simulate.trial import TrialContext, TrialRecord, run_trial
 from sfm_laserscale.synthetic.simulate.views import ViewJob, grid_angles, make_jobs
+from sfm_laserscale.version import __version__
 
 logger = logging.getLogger(__name__)
 
