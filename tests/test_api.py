@@ -113,17 +113,6 @@ def test_every_public_name_listed_exists() -> None:
         _ = sfm_laserscale.no_such_name  # type: ignore[attr-defined]
 
 
-def test_one_version_string() -> None:
-    from click.testing import CliRunner
-
-    from sfm_laserscale.cli import main
-
-    out = CliRunner().invoke(main, ["--version"]).output
-    assert out.strip().endswith(sfm_laserscale.__version__)
-    meta = __import__("importlib.metadata").metadata.version("sfm-laserscale")
-    assert meta == sfm_laserscale.__version__
-
-
 def test_api_refuses_bad_input(small_dataset: Any, tmp_path: Path) -> None:
     with pytest.raises(InputError, match="method"):
         sfm_laserscale.scale(small_dataset.model_dir, small_dataset.mesh_path,
