@@ -239,3 +239,38 @@ def test_pool_workers_die_with_a_sigkilled_parent(tmp_path: Path) -> None:
     proc.kill()
     proc.wait(timeout=30)
     assert _wait_gone(pids) == []
+
+
+def _children(pid: int) -> list[int]:
+    found: list[int] = []
+    try:
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            found += [int(c) for c in (task / "children").read_text().split()]
+    except (FileNotFoundError, ProcessLookupError):
+        pass
+    return found
+
+
+def test_simulate_stopped_by_sigterm_leaves_no_worker(tmp_path: Path) -> None:
+    """The issue's case: `simulate` with two workers, ended with SIGTERM, left them running at
+    full CPU. Now it exits 143 and its workers are gone."""
+    out = tmp_path / "sim"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sfm_laserscale.cli", "simulate", "--out", str(out), "--mode",
+         "random", "--trials", "20000", "--config", "A", "--distance", "2", "--workers", "2",
+         "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env=dict(os.environ, PYTHONPATH=str(REPO)))
+    deadline = time.monotonic() + 120
+    workers: list[int] = []
+    while time.monotonic() < deadline and proc.poll() is None:
+        workers = _children(proc.pid)
+        if len(workers) >= 2 and all(_alive(w) for w in workers):
+            time.sleep(3.0)  # the workers are busy with trials
+            break
+        time.sleep(0.2)
+    assert proc.poll() is None and len(workers) >= 2, proc.stderr.read() if proc.stderr else ""
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err
+    assert _wait_gone(workers) == []
+    assert not out.exists() and _staging(out) == []
