@@ -187,3 +187,15 @@ def test_scale_writes_footprints_of_every_image(small_scale_run: Any, small_data
         if dist[row["image"]] is not None:
             assert row["distance_m"] == pytest.approx(dist[row["image"]], rel=0.25)
     assert 'id="footprints"' in (out / "report.html").read_text()
+
+
+def test_the_benchmark_script_runs(capsys: pytest.CaptureFixture[str],
+                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    from script_loader import load_script
+
+    bench = load_script("bench_footprints")
+    monkeypatch.setattr("sys.argv", ["bench_footprints", "--triangles", "5000", "--images",
+                                     "4", "--repeat", "1", "--width", "320", "--height", "240"])
+    bench.main()
+    out = capsys.readouterr().out
+    assert "whole mesh" in out and "cropped groups" in out and "(4 on the mesh" in out
