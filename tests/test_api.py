@@ -44,7 +44,8 @@ def _targets(folder: Path) -> None:
     folder.mkdir()
     for i, pose in enumerate([(1.0, 10, -20, (0.0, 0.1)), (2.5, -5, -25, (0.05, 0.1)),
                               (4.0, 5, 20, (0.06, 0.1))]):
-        shot = render_calibration_shot(camera, rig, board_pose(*pose), BoardSpec(square_m=0.06))
+        shot = render_calibration_shot(camera, rig, board_pose(*pose), BoardSpec(square_m=0.06),
+                                       ss=1)  # no supersampling: 9x faster, still found
         cv2.imwrite(str(folder / f"t{i}.png"), shot.image[:, :, ::-1])
 
 

@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from sfm_laserscale.io.outputs import check_output_dir, clean_stale_staging, staged_output_dir
@@ -138,6 +139,20 @@ def test_sigkilled_pid1_run_is_cleaned_without_pids(tmp_path: Path) -> None:
     assert _staging(out) == []
 
 
+@pytest.mark.skipif(not _pid_namespaces_available(),
+                    reason="no PID namespaces here (unshare --pid needs root or user namespaces)")
+def test_sigterm_reaches_the_run_as_pid1(tmp_path: Path) -> None:
+    """As pid 1 (a container without tini or --init) a process gets no default signal action;
+    the run's own handler still stops it cleanly."""
+    out = tmp_path / "out"
+    proc = _start_blocking_run(tmp_path, out, ("unshare", "--pid", "--fork"))
+    _wait_ready(proc)
+    os.kill(_only_child(proc.pid), signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 143, err
+    assert not out.exists() and _staging(out) == []
+
+
 def test_live_runs_folder_is_kept(tmp_path: Path) -> None:
     out = tmp_path / "out"
     with staged_output_dir(out, overwrite=False) as tmp:
@@ -251,21 +266,38 @@ def _children(pid: int) -> list[int]:
     return found
 
 
+def _small_seafloor(path: Path, n: int = 40) -> Path:
+    """A gently waved 40 × 40 m floor (metric, facing +z) as a PLY file."""
+    import open3d as o3d
+
+    u, v = np.meshgrid(np.linspace(-20, 20, n), np.linspace(-20, 20, n))
+    verts = np.column_stack([u.ravel(), v.ravel(), (0.2 * np.sin(u / 3) * np.cos(v / 4)).ravel()])
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = (idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(),
+                  idx[1:, :-1].ravel())
+    tris = np.vstack([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts),
+                                     o3d.utility.Vector3iVector(tris))
+    assert o3d.io.write_triangle_mesh(str(path), mesh)
+    return path
+
+
 def test_simulate_stopped_by_sigterm_leaves_no_worker(tmp_path: Path) -> None:
     """The issue's case: `simulate` with two workers, ended with SIGTERM, left them running at
     full CPU. Now it exits 143 and its workers are gone."""
     out = tmp_path / "sim"
+    mesh = _small_seafloor(tmp_path / "floor.ply")  # the demo's seafloor takes 20 s to build
     proc = subprocess.Popen(
         [sys.executable, "-m", "sfm_laserscale.cli", "simulate", "--out", str(out), "--mode",
-         "random", "--trials", "20000", "--config", "A", "--distance", "2", "--workers", "2",
-         "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        env=dict(os.environ, PYTHONPATH=str(REPO)))
+         "random", "--trials", "5000", "--config", "A", "--distance", "2", "--workers", "2",
+         "--mesh", str(mesh), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True, env=dict(os.environ, PYTHONPATH=str(REPO)))
     deadline = time.monotonic() + 120
     workers: list[int] = []
     while time.monotonic() < deadline and proc.poll() is None:
         workers = _children(proc.pid)
         if len(workers) >= 2 and all(_alive(w) for w in workers):
-            time.sleep(3.0)  # the workers are busy with trials
+            time.sleep(1.0)  # the workers are busy with trials
             break
         time.sleep(0.2)
     assert proc.poll() is None and len(workers) >= 2, proc.stderr.read() if proc.stderr else ""
