@@ -9,10 +9,11 @@ STAMP := $(VENV)/.installed
 all: install
 
 # scripts/install.sh is the one install script (docker/Dockerfile runs it too): system libraries,
-# Debian's colmap and chromium when it can (optional: tests that need them skip), the package
-# into .venv.
-$(STAMP): pyproject.toml scripts/install.sh
-	bash scripts/install.sh --venv $(VENV) --python $(PY) --extras test --editable --colmap --browser
+# Debian's colmap and chromium when it can (optional: tests that need them skip), the locked
+# dependencies (requirements.lock, as in the image), then the package and its test extras into
+# .venv.
+$(STAMP): pyproject.toml requirements.lock scripts/install.sh
+	bash scripts/install.sh --venv $(VENV) --python $(PY) --extras test --editable --colmap --browser --locked
 	touch $(STAMP)
 
 install: $(STAMP)

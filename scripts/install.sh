@@ -8,16 +8,23 @@
 #      only warns (the tests that need it skip, the COLMAP plugin falls back to pycolmap).
 #      With --browser also Debian's `chromium` (optional, for the report's headless-browser
 #      test; the test skips when it is absent).
+#      With --tini also Debian's `tini` (the container's init: forwards signals, reaps).
 #   2. the Python package with the given extras: into --venv DIR (created when missing) or
 #      into the Python given by --python (default python3), editable with --editable.
+#      With --locked, every dependency first comes from requirements.lock (exact versions and
+#      hashes, `pip install --require-hashes`), so the environment is the one the image and
+#      the tests were made with; --deps-only installs only those (the image's first layer).
+#      An environment holding Open3D's full wheel gets the CPU-only build instead on Linux
+#      x86-64 (the two share the package's files: the old one is removed first).
 #   3. a check that Open3D, pycolmap and OpenCV import.
 #
 # usage: scripts/install.sh [--venv DIR] [--python PY] [--extras LIST] [--editable] [--colmap]
-#                           [--browser]
+#                           [--browser] [--tini] [--locked] [--deps-only]
 set -euo pipefail
 
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
-VENV="" PY=python3 EXTRAS="" EDITABLE=0 COLMAP=0 BROWSER=0
+VENV="" PY=python3 EXTRAS="" EDITABLE=0 COLMAP=0 BROWSER=0 TINI=0 LOCKED=0 DEPS_ONLY=0
+LOCK="$ROOT/requirements.lock"
 while [ $# -gt 0 ]; do
   case "$1" in
     --venv) VENV=$2; shift 2 ;;
@@ -26,7 +33,10 @@ while [ $# -gt 0 ]; do
     --editable) EDITABLE=1; shift ;;
     --colmap) COLMAP=1; shift ;;
     --browser) BROWSER=1; shift ;;
-    -h|--help) sed -n '2,17p' "$0"; exit 0 ;;
+    --tini) TINI=1; shift ;;
+    --locked) LOCKED=1; shift ;;
+    --deps-only) LOCKED=1; DEPS_ONLY=1; shift ;;
+    -h|--help) sed -n '2,26p' "$0"; exit 0 ;;
     *) echo "install.sh: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -85,6 +95,8 @@ install_system() {
     "the tests that need the colmap CLI will skip and the COLMAP plugin will use pycolmap"
   [ "$BROWSER" -eq 0 ] || install_optional chromium \
     "the report's headless-browser test will skip"
+  [ "$TINI" -eq 0 ] || install_optional tini \
+    "run the container with docker run --init so that signals reach sfm-laserscale"
 }
 
 install_optional() {  # install_optional PACKAGE CONSEQUENCE: apt-get install, warn on failure
@@ -97,6 +109,17 @@ install_optional() {  # install_optional PACKAGE CONSEQUENCE: apt-get install, w
   say "WARNING: could not install Debian's $1; $2"
 }
 
+cpu_open3d() {  # 0 where the pins choose open3d-cpu (Linux x86-64; bash's own variables)
+  [[ "$OSTYPE" == linux* && "$HOSTTYPE" == x86_64 ]]
+}
+
+switch_to_cpu_open3d() {  # an environment made before the switch: the full wheel out first
+  local py=$1
+  cpu_open3d && "$py" -m pip show -q open3d >/dev/null 2>&1 || return 0
+  say "replacing Open3D's full wheel (with CUDA) by open3d-cpu, the same version"
+  "$py" -m pip uninstall -q -y open3d open3d-cpu
+}
+
 install_python() {
   local py spec
   if [ -n "$VENV" ]; then
@@ -106,12 +129,19 @@ install_python() {
   else
     py="$PY"
   fi
-  spec="$ROOT"
-  [ -z "$EXTRAS" ] || spec="$ROOT[$EXTRAS]"
-  if [ "$EDITABLE" -eq 1 ]; then
-    "$py" -m pip install -q -e "$spec"
-  else
-    "$py" -m pip install -q "$spec"
+  switch_to_cpu_open3d "$py"
+  if [ "$LOCKED" -eq 1 ]; then
+    [ -f "$LOCK" ] || { say "no lock file $LOCK"; exit 1; }
+    "$py" -m pip install -q --require-hashes -r "$LOCK"
+  fi
+  if [ "$DEPS_ONLY" -eq 0 ]; then
+    spec="$ROOT"
+    [ -z "$EXTRAS" ] || spec="$ROOT[$EXTRAS]"
+    local flags=(-q)
+    [ "$EDITABLE" -eq 0 ] || flags+=(-e)
+    # locked: the dependencies are in place; only the extras' own packages may come in
+    [ "$LOCKED" -eq 0 ] || [ -n "$EXTRAS" ] || flags=(--no-deps "${flags[@]}")
+    "$py" -m pip install "${flags[@]}" "$spec"
   fi
   "$py" -c "import open3d, pycolmap, cv2" || {
     say "Open3D/pycolmap/OpenCV failed to import: see the message above (Open3D needs" \

@@ -4,7 +4,8 @@ command's ``run`` (:mod:`sfm_laserscale.commands`).
 Exit status: 0 success; 1 the run finished but no scale could be estimated;
 2 bad usage or bad input (one line on stderr, no traceback without --debug);
 3 an internal error (a bug: please report it with the --debug traceback); 4 an external tool of a
-pipeline command (``colmap``, ``openmvg``) failed: the line names the step.
+pipeline command (``colmap``, ``openmvg``) failed: the line names the step;
+143 / 130 stopped by SIGTERM / SIGINT (nothing written, workers stopped).
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ from typing import Any
 
 import click
 
-from sfm_laserscale import __version__
 from sfm_laserscale.errors import InputError, ToolFailedError
+from sfm_laserscale.lifecycle import Interrupted, signals_as_exceptions
+from sfm_laserscale.version import __version__
 
 logger = logging.getLogger("sfm_laserscale")
 
@@ -82,7 +84,12 @@ def common_options(func: Callable[..., int]) -> Callable[..., None]:
         debug = debug or bool(ctx.obj and ctx.obj.get("debug"))
         _setup_logging(verbose, quiet)
         try:
-            code = func(quiet=quiet, **kwargs)
+            with signals_as_exceptions():  # SIGTERM/SIGINT: clean up, exit 143/130
+                code = func(quiet=quiet, **kwargs)
+        except Interrupted as exc:
+            click.echo(f"sfm-laserscale: {exc}: stopped, no output written (an existing "
+                       "output folder is kept as it was)", err=True)
+            ctx.exit(exc.exit_status)
         except InputError as exc:
             if debug:
                 raise

@@ -174,6 +174,14 @@ class SparseModel:
                   for k, im in self.images.items()}
         return replace(self, images=images)
 
+    def scaled(self, scale: float) -> SparseModel:
+        """The same model with every length times ``scale``: image translations and points
+        (rotations, cameras and observations unchanged)."""
+        images = {k: replace(im, cam_from_world=Pose(im.cam_from_world.R,
+                                                     im.cam_from_world.t * scale))
+                  for k, im in self.images.items()}
+        return replace(self, images=images, points_xyz=self.points_xyz * scale)
+
     @cached_property
     def extent(self) -> float:
         """Diagonal of the 2–98 % percentile box of the 3D points (model units)."""

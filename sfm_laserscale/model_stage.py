@@ -6,16 +6,14 @@ mesh_error.py and model_checks.py for commands/scale.py; no maths of its own."""
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from sfm_laserscale.fusion import FusedScale
-from sfm_laserscale.io.models import load_model
 from sfm_laserscale.mesh_error import (
     SharedOffset,
     SpotMeshError,
@@ -53,15 +51,16 @@ def mesh_check_rays(run: ImageRun, options: ScaleOptions) -> tuple[F64, F64]:
                       neighbours(xy, reg.inlier_xy_px, view[0], options.mesh_error))
 
 
-def intrinsics_field(model_path: Path, runs: Sequence[ImageRun], options: ScaleOptions
-                     ) -> IntrinsicsField | None:
-    """The model intrinsics' error around the registered laser images' inlier points (the model
-    is read again with its observations: the run dropped them after the index)."""
+def intrinsics_field(read_model: Callable[[], SparseModel], runs: Sequence[ImageRun],
+                     options: ScaleOptions) -> IntrinsicsField | None:
+    """The model intrinsics' error around the registered laser images' inlier points;
+    ``read_model`` gives the model again with its observations (the run dropped them after the
+    index): read from its file, or the one given in memory."""
     ids = [r.registration.inlier_point3D_ids for r in runs
            if r.reason is None and r.registration is not None and _registered(r) is not None]
     if not ids:
         return None
-    return analyse_intrinsics(lambda: load_model(model_path), np.concatenate(ids),
+    return analyse_intrinsics(read_model, np.concatenate(ids),
                               options.intrinsics)
 
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import logging
-import os
 import re
 import shutil
 import sys
@@ -21,8 +20,8 @@ from typing import Any
 
 from tqdm import tqdm
 
-from sfm_laserscale import __version__
-from sfm_laserscale.io.locks import hold, is_held
+from sfm_laserscale.io.run_lock import claim_if_abandoned, create_lock
+from sfm_laserscale.version import __version__
 
 logger = logging.getLogger(__name__)
 _CHUNK = 1 << 22
@@ -170,18 +169,20 @@ class ColmapLog:
 
 
 _GLOG_DIR_PREFIX = "sfm_laserscale_glog_"
-_GLOG_LOCK = "owner.lock"
 _GLOG_TIME = re.compile(r"[IWEF](\d{8} \d\d:\d\d:\d\d\.\d{6}) ")
 
 
 def _remove_stale_glog_dirs(parent: Path) -> None:
     """Remove the temporary glog folders of runs that are gone (killed runs cannot clean up
-    after themselves): a folder whose lock (:mod:`sfm_laserscale.io.locks`) no living process
-    holds. A lock, not the process id in the name: runs in other containers sharing the
-    temporary folder have process ids this one cannot see."""
-    for d in parent.glob(_GLOG_DIR_PREFIX + "*_*"):
-        if d.is_dir() and not is_held(d / _GLOG_LOCK):
-            shutil.rmtree(d, ignore_errors=True)
+    after themselves): each folder's run holds the lock ``<folder>.lock`` while it lives
+    (:mod:`sfm_laserscale.io.run_lock`; no process ids: in a container every run is pid 1)."""
+    for d in parent.glob(_GLOG_DIR_PREFIX + "*"):
+        if not d.is_dir() or d.is_symlink():
+            continue
+        lock = claim_if_abandoned(d.with_name(d.name + ".lock"))
+        if lock is not None:
+            with lock:
+                shutil.rmtree(d, ignore_errors=True)
 
 
 def _stderr_threshold(logging_: Any) -> int:
@@ -203,8 +204,9 @@ def captured_colmap_log() -> Iterator[ColmapLog]:
                                          "stderrthreshold")}
     threshold = _stderr_threshold(lg)
     _remove_stale_glog_dirs(Path(tempfile.gettempdir()))
-    folder = Path(tempfile.mkdtemp(prefix=f"{_GLOG_DIR_PREFIX}{os.getpid()}_"))
-    lock = hold(folder / _GLOG_LOCK)
+    token, lock = create_lock(Path(tempfile.gettempdir()), _GLOG_DIR_PREFIX, ".lock")
+    folder = lock.path.with_name(f"{_GLOG_DIR_PREFIX}{token}")  # guarded by <folder>.lock
+    folder.mkdir()
     log = ColmapLog(folder)
     try:
         lg.logtostderr, lg.alsologtostderr = False, False
@@ -215,8 +217,31 @@ def captured_colmap_log() -> Iterator[ColmapLog]:
         log.stop()
         for key, value in saved.items():
             setattr(lg, key, value)
-        lock.close()
         shutil.rmtree(folder, ignore_errors=True)
+        lock.release()
+
+
+class _NoGlog:
+    """Stands in for :class:`ColmapLog` when nothing is captured."""
+
+    def lines(self) -> list[str]:
+        return []
+
+
+@contextmanager
+def glog_without_files() -> Iterator[_NoGlog]:
+    """During the block pycolmap's (glog) messages go to stderr only, warnings and up, and no
+    log file is written (glog's default writes one per process into the temporary folder):
+    a run that writes nothing (the Python API without ``out``). Previous settings come back."""
+    import pycolmap
+
+    lg = pycolmap.logging
+    saved = (lg.logtostderr, lg.minloglevel)
+    lg.logtostderr, lg.minloglevel = True, max(int(lg.minloglevel), 1)
+    try:
+        yield _NoGlog()
+    finally:
+        lg.logtostderr, lg.minloglevel = saved
 
 
 def glog_lines(text: str) -> list[str]:

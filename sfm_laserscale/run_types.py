@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from sfm_laserscale.detection import DetectionOptions, DetectionResult
+from sfm_laserscale.footprints import FootprintOptions
 from sfm_laserscale.fusion import FusionOptions
 from sfm_laserscale.held_out import HeldOutCheck
 from sfm_laserscale.io.images import LaserImage
@@ -83,6 +84,7 @@ class ScaleOptions:
     intrinsics: IntrinsicsOptions = field(default_factory=IntrinsicsOptions)
     mesh_error: MeshErrorOptions = field(default_factory=MeshErrorOptions)
     model_checks: ModelCheckOptions = field(default_factory=ModelCheckOptions)
+    footprints: FootprintOptions = field(default_factory=FootprintOptions)  # footprints.csv
 
 
 @dataclass(frozen=True)
@@ -141,7 +143,7 @@ class Timer:
             k: round(self.seconds.get(k, 0.0), 4)
             for k in ("load", "detect", "register", "raycast", "estimate", "write")
         }
-        for k in ("sift_here", "sift_in_workers"):  # when worker processes shared the SIFT
+        for k in ("sift_here", "sift_in_workers", "footprints"):  # when these ran
             if k in self.seconds:
                 out[k] = round(self.seconds[k], 4)
         out["total"] = round(time.perf_counter() - self._start, 4)

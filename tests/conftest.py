@@ -1,10 +1,14 @@
-"""Shared fixtures: the real fixtures folder and one small synthetic data set per session."""
+"""Shared fixtures: the real fixtures folder, one small synthetic data set per session, and the
+schema check of every report.json a test writes."""
 
 from __future__ import annotations
 
+import json
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from report_schema_check import schema_problems
 
 REPO = Path(__file__).resolve().parents[1]
 FIXTURES = REPO.parent / "shared" / "fixtures"
@@ -37,3 +41,28 @@ def small_scale_run(small_dataset, tmp_path_factory: pytest.TempPathFactory):  #
 
     out = tmp_path_factory.mktemp("small_scale_run") / "out"
     return scale_command.run(scale_inputs_for(small_dataset), out, ScaleOptions(progress=False))
+
+
+# ---------------------------------------------------------------------------- report schema
+
+@pytest.fixture(autouse=True)
+def _reports_follow_their_schema(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Every report.json a test writes into its ``tmp_path`` follows report.schema.json."""
+    # asked for now, so that tmp_path is torn down after this check
+    folder = request.getfixturevalue("tmp_path") if "tmp_path" in request.fixturenames else None
+    yield
+    if folder is not None:
+        bad = schema_problems(folder)
+        if bad:
+            pytest.fail(f"report.json breaks its schema: {json.dumps(bad, indent=1)}")
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _session_reports_follow_their_schema(tmp_path_factory: pytest.TempPathFactory
+                                         ) -> Iterator[None]:
+    """... and so does every report.json written by shared fixtures (module and session
+    scoped ones write under the session's base folder too), checked when the session ends."""
+    yield
+    bad = schema_problems(tmp_path_factory.getbasetemp())
+    if bad:
+        pytest.fail(f"report.json breaks its schema: {json.dumps(bad, indent=1)}")

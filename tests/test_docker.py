@@ -1,5 +1,7 @@
-"""docker/Dockerfile (parsed with the `dockerfile` package: no Docker engine runs here) and the
-one install script that the Dockerfile and the Makefile share, run with stub system tools."""
+"""docker/Dockerfile (parsed with the `dockerfile` package: no Docker engine runs here), the
+one install script that the Dockerfile and the Makefile share, run with stub system tools, and
+requirements.lock (issue #20: non-root user, tini, layer order, locked dependencies, the
+version label)."""
 
 from __future__ import annotations
 
@@ -34,7 +36,8 @@ def test_base_image_and_entrypoint(commands: Commands) -> None:
     froms = [c for c in commands if c.cmd == "FROM"]
     assert len(froms) == 1 and froms[0].value[0] == "python:3.11-slim-bookworm"
     entry = [c for c in commands if c.cmd == "ENTRYPOINT"]
-    assert len(entry) == 1 and entry[0].json and entry[0].value == ("sfm-laserscale",)
+    assert len(entry) == 1 and entry[0].json
+    assert entry[0].value == ("/usr/bin/tini", "--", "sfm-laserscale")  # signals forwarded
     scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
     assert scripts["sfm-laserscale"] == "sfm_laserscale.cli:main"
 
@@ -42,20 +45,25 @@ def test_base_image_and_entrypoint(commands: Commands) -> None:
 def test_docker_and_make_run_the_same_install_script(commands: Commands) -> None:
     runs = _runs(commands)
     installs = [r for r in runs if f"bash {INSTALL}" in r]
-    assert len(installs) == 1
+    assert len(installs) == 2  # the locked dependencies, then the package
+    assert all("--locked" in r for r in installs)
+    assert "--deps-only" in installs[0] and "--tini" in installs[0]
     # the script is the only way anything gets installed in the image
     assert not [r for r in runs if re.search(r"pip install|apt-get|apt install", r)]
     makefile = (REPO / "Makefile").read_text()
     recipe = re.search(r"^\$\(STAMP\):(.*)\n((?:\t.*\n)+)", makefile, re.M)
     assert recipe is not None
     assert INSTALL in recipe.group(1), "the install stamp depends on the script"
-    assert f"bash {INSTALL}" in recipe.group(2)
+    assert "requirements.lock" in recipe.group(1), "... and on the lock file"
+    assert f"bash {INSTALL}" in recipe.group(2) and "--locked" in recipe.group(2)
     assert "pip install" not in makefile and "apt-get" not in makefile
     assert (REPO / INSTALL).is_file()
 
 
-def test_install_runs_after_every_file_it_needs_is_copied(commands: Commands) -> None:
+def _copies_before(commands: Commands, run_index: int) -> list[str]:
+    """COPY sources before the ``run_index``-th RUN of the install script."""
     copied: list[str] = []
+    seen = 0
     for c in commands:
         if c.cmd == "COPY":
             *sources, _ = c.value
@@ -63,9 +71,61 @@ def test_install_runs_after_every_file_it_needs_is_copied(commands: Commands) ->
                 assert (REPO / src).exists(), f"COPY source {src} missing from the repository"
             copied += sources
         if c.cmd == "RUN" and INSTALL in c.value[0]:
-            break
-    for needed in ("pyproject.toml", "README.md", "sfm_laserscale", "scripts", "plugins"):
+            if seen == run_index:
+                return copied
+            seen += 1
+    raise AssertionError(f"no install RUN number {run_index}")
+
+
+def test_install_runs_after_every_file_it_needs_is_copied(commands: Commands) -> None:
+    # the dependencies' layer needs only the script and the lock: code edits keep it
+    assert sorted(_copies_before(commands, 0)) == sorted([INSTALL, "requirements.lock"])
+    copied = _copies_before(commands, 1)
+    for needed in ("pyproject.toml", "README.md", "LICENSE", "sfm_laserscale", "scripts",
+                   "plugins"):
         assert needed in copied, needed
+
+
+def test_image_runs_as_a_user_not_root(commands: Commands) -> None:
+    users = [(i, c.value[0]) for i, c in enumerate(commands) if c.cmd == "USER"]
+    assert users and users[-1][1] not in ("root", "0", "0:0")
+    last_run = max(i for i, c in enumerate(commands) if c.cmd == "RUN")
+    assert users[-1][0] > last_run, "nothing runs as root after the USER line"
+    useradd = [r for r in _runs(commands) if "useradd" in r]
+    assert useradd and users[-1][1] in useradd[0]
+
+
+def test_image_label_carries_the_package_version(commands: Commands) -> None:
+    from sfm_laserscale import __version__
+
+    args = dict(a.split("=", 1) for c in commands if c.cmd == "ARG" for a in c.value if "=" in a)
+    assert args["VERSION"] == __version__
+    labels = [c.value for c in commands if c.cmd == "LABEL"]
+    flat = {k: v.strip('"') for k, v in zip(labels[0][::2], labels[0][1::2], strict=True)}
+    assert flat["org.opencontainers.image.version"] == "${VERSION}"
+    assert flat["org.opencontainers.image.licenses"] == "BSD-3-Clause"
+    # and the build fails if the installed package says another version
+    assert any("--version" in r and "${VERSION}" in r for r in _runs(commands))
+
+
+def test_lock_pins_every_dependency_with_hashes() -> None:
+    from packaging.requirements import Requirement
+
+    text = (REPO / "requirements.lock").read_text()
+    pattern = r"^([A-Za-z0-9_.\-]+)==([^\s;]+)([^\\\n]*)\\\n((?:\s+--hash=\S+\s*\\?\n?)+)"
+    blocks = re.findall(pattern, text, re.M)
+    pins = {name.lower(): version for name, version, _, _ in blocks}
+    assert len(pins) > 30
+    assert all("--hash=sha256:" in hashes for *_, hashes in blocks)
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    deps = [Requirement(d) for d in project["dependencies"]]
+    deps += [Requirement(d) for d in project["optional-dependencies"]["simulate"]]
+    for req in deps:
+        name = req.name.lower()
+        assert name in pins, f"{name} is not in requirements.lock: regenerate it"
+        assert req.specifier.contains(pins[name]), f"{name}=={pins[name]} breaks {req}"
+    marker = {name.lower(): rest for name, _, rest, _ in blocks}
+    assert "sys_platform == 'linux'" in marker["open3d-cpu"]
 
 
 def test_docker_readme_runs_the_image_with_a_mounted_data_folder() -> None:
@@ -149,6 +209,28 @@ def test_install_with_everything_present_touches_no_package(tmp_path: Path) -> N
     calls = (tmp_path / "calls.log").read_text().splitlines()
     assert not [c for c in calls if c.startswith("apt-get")]
     assert f"python3 -m pip install -q -e {REPO}" in calls
+
+
+def test_locked_install_takes_the_lock_then_the_package_alone(tmp_path: Path) -> None:
+    env = _stub_env(tmp_path, root=False, installed={"libusb-1.0-0", "libgomp1", "tini"},
+                    apt_ok=set())
+    proc = _install(tmp_path, env, "--locked", "--tini")
+    assert proc.returncode == 0, proc.stderr
+    pip = [c for c in (tmp_path / "calls.log").read_text().splitlines()
+           if c.startswith("python3 -m pip install")]
+    assert pip == [f"python3 -m pip install -q --require-hashes -r {REPO}/requirements.lock",
+                   f"python3 -m pip install --no-deps -q {REPO}"]
+
+
+def test_deps_only_installs_the_lock_alone(tmp_path: Path) -> None:
+    env = _stub_env(tmp_path, root=True, installed={"libgomp1"},
+                    apt_ok={"libusb-1.0-0", "tini"})
+    proc = _install(tmp_path, env, "--deps-only", "--tini")
+    assert proc.returncode == 0, proc.stderr
+    calls = (tmp_path / "calls.log").read_text().splitlines()
+    assert any("install" in c and c.endswith("tini") for c in calls)
+    pip = [c for c in calls if c.startswith("python3 -m pip install")]
+    assert pip == [f"python3 -m pip install -q --require-hashes -r {REPO}/requirements.lock"]
 
 
 def test_install_script_is_valid_bash() -> None:

@@ -128,8 +128,8 @@ def stop_after_loading(monkeypatch: pytest.MonkeyPatch) -> None:
     """``scale`` reads and checks every input as usual, then stops (raises Accepted)."""
     real = scale_command.load_inputs
 
-    def load_then_stop(inputs: Any, options: Any) -> Any:
-        real(inputs, options)
+    def load_then_stop(*args: Any, **kwargs: Any) -> Any:
+        real(*args, **kwargs)
         raise Accepted
 
     monkeypatch.setattr(scale_command, "load_inputs", load_then_stop)

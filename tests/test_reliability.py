@@ -143,17 +143,27 @@ def test_out_filled_during_run_is_not_swapped_away(tmp_path: Path) -> None:
 
 
 def test_stale_folders_of_dead_runs_are_removed(tmp_path: Path) -> None:
+    """Whose a folder is, the staging lock tells (no process ids): a folder whose lock can be
+    taken, or that has no lock file (an older version's), is a dead run's."""
+    from sfm_laserscale.io.run_lock import create_lock
+
     out = tmp_path / "out"
     _write_tree(out, "current")
-    pid = dead_pid()
-    stale = [tmp_path / f".out.partial-{pid}-abc", tmp_path / f".out.old-{pid}"]
-    live = tmp_path / f".out.partial-{os.getpid()}-xyz"  # a run of a live process
+    token, abandoned = create_lock(tmp_path, ".out.lock-")
+    abandoned.release(unlink=False)  # its owner died: the file stays, the lock is gone
+    stale = [tmp_path / f".out.partial-{token}", tmp_path / f".out.old-{token}",
+             tmp_path / f".out.partial-{dead_pid()}-abc"]  # no lock file at all
+    live_token, live_lock = create_lock(tmp_path, ".out.lock-")  # a live run's
+    live = tmp_path / f".out.partial-{live_token}"
     other = tmp_path / ".outer.partial-1-abc"  # another --out's folder
     for d in [*stale, live, other]:
         _write_tree(d, "x")
     removed = clean_stale_staging(out)
     assert sorted(removed) == sorted(stale)
-    assert live.is_dir() and other.is_dir() and _tag(out) == "current"
+    assert not (tmp_path / f".out.lock-{token}").exists()
+    assert live.is_dir() and live_lock.path.exists() and other.is_dir()
+    assert _tag(out) == "current"
+    live_lock.release()
 
 
 def test_old_output_restored_when_a_run_died_between_renames(tmp_path: Path) -> None:

@@ -167,7 +167,8 @@ def test_real_run_report_in_chromium(small_scale_run: Any, tmp_path: Path, artif
     assert got["returncode"] == 0
     assert got["console"] == []
     assert got["broken"] == []
-    assert got["images"] == 2 + sum(1 for im in report["images"] if im["overlay"])
+    plots = 2 + (report.get("footprints") is not None)  # per-laser, methods, footprints
+    assert got["images"] == plots + sum(1 for im in report["images"] if im["overlay"])
     assert got["overflow"] == "false"
     assert check_html(got["dom"], report) == []
     _check_screenshot(shot)

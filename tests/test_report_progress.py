@@ -262,31 +262,26 @@ def test_run_log_without_pycolmap_lines() -> None:
 
 
 def test_stale_glog_folders_of_dead_runs_are_removed(tmp_path: Path) -> None:
-    """A killed run leaves its temporary glog folder; the next run removes it: the folders
-    whose lock no living process holds, whatever process id their name carries (runs in other
-    containers sharing /tmp have ids this process cannot see)."""
-    from sfm_laserscale.io.locks import hold
-    from sfm_laserscale.provenance import _GLOG_LOCK, _remove_stale_glog_dirs
+    """A killed run leaves its temporary glog folder; the next run removes it: a folder whose
+    lock (``<folder>.lock``) can be taken or is missing (no pid compared: pid 1 in a container
+    is always alive)."""
+    from sfm_laserscale.io.run_lock import create_lock
+    from sfm_laserscale.provenance import _GLOG_DIR_PREFIX, _remove_stale_glog_dirs
 
-    names = {"killed": "sfm_laserscale_glog_5_x1", "live_here": "sfm_laserscale_glog_1_x2",
-             "live_elsewhere": "sfm_laserscale_glog_999999_x3", "other": "unrelated_123_x4"}
+    token, dead_lock = create_lock(tmp_path, _GLOG_DIR_PREFIX, ".lock")
+    dead_lock.release(unlink=False)  # its process died: the file stays, the lock is gone
+    live_token, live_lock = create_lock(tmp_path, _GLOG_DIR_PREFIX, ".lock")
+    names = {
+        "dead": f"{_GLOG_DIR_PREFIX}{token}",
+        "old version": f"{_GLOG_DIR_PREFIX}1_x1",  # no lock file: an older version's, or gone
+        "live": f"{_GLOG_DIR_PREFIX}{live_token}",
+        "other": "unrelated_123_x4",
+    }
     for name in names.values():
         (tmp_path / name).mkdir()
         (tmp_path / name / "pycolmap-1.log").write_text("I... msg\n")
-    (tmp_path / names["killed"] / _GLOG_LOCK).write_text("5")  # its holder is gone
-    mine = hold(tmp_path / names["live_here"] / _GLOG_LOCK)
-    code = ("import sys, time; from pathlib import Path; from sfm_laserscale.io.locks import hold;"
-            f" h = hold(Path({str(tmp_path / names['live_elsewhere'] / _GLOG_LOCK)!r}));"
-            " print('held', flush=True); time.sleep(60)")
-    other = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
-    try:
-        assert other.stdout is not None and other.stdout.readline().strip() == "held"
-        _remove_stale_glog_dirs(tmp_path)
-        assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
-            names[k] for k in ("live_here", "live_elsewhere", "other"))
-    finally:
-        other.kill()
-        other.wait()
-        mine.close()
-    _remove_stale_glog_dirs(tmp_path)  # both holders gone now
-    assert [p.name for p in tmp_path.iterdir()] == [names["other"]]
+    _remove_stale_glog_dirs(tmp_path)
+    left = sorted(p.name for p in tmp_path.iterdir() if p.is_dir())
+    assert left == sorted(names[k] for k in ("live", "other"))
+    assert live_lock.path.exists() and not dead_lock.path.exists()
+    live_lock.release()

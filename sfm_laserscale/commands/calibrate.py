@@ -39,10 +39,12 @@ def _camera_from_model(model_path: Path, width: int, height: int) -> Camera:
     return cam
 
 
-def run(inputs: CalibrateInputs, out: Path, options: CalibrateOptions,
+def run(inputs: CalibrateInputs, out: Path | None, options: CalibrateOptions,
         overwrite: bool = False) -> CalibrateResult:
-    """Read the target images, calibrate, write rig.toml and calibration_report.json."""
-    check_output_dir(out, overwrite)
+    """Read the target images, calibrate, write rig.toml and calibration_report.json (``out``
+    None: nothing written, the Python API)."""
+    if out is not None:
+        check_output_dir(out, overwrite)
     if not inputs.images:
         raise InputError("no target images given")
     files = expand_image_paths(list(inputs.images))
@@ -55,6 +57,8 @@ def run(inputs: CalibrateInputs, out: Path, options: CalibrateOptions,
     h, w = next(iter(sizes))
     camera = None if inputs.model is None else _camera_from_model(inputs.model, w, h)
     result = calibrate_images(images, camera, options)
+    if out is None:
+        return result
     with staged_output_dir(out, overwrite) as tmp:
         (tmp / "rig.toml").write_text(rig_to_toml(result.calibration.rig), encoding="utf-8")
         (tmp / "calibration_report.json").write_text(json.dumps(result.report, indent=2),

@@ -36,9 +36,9 @@ from sfm_laserscale.detection.beam_lines import (
     rig_with_learned_lines,
 )
 from sfm_laserscale.errors import InputError
-from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
+from sfm_laserscale.io.images import LaserImage, damage, find_laser_images, read_rgb
 from sfm_laserscale.io.models import load_model
-from sfm_laserscale.io.outputs import staged_output_dir
+from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
 from sfm_laserscale.io.spots_csv import write_spots_csv
 from sfm_laserscale.model import CAMERA_MODEL_IDS, Camera, SparseModel, Spot
 from sfm_laserscale.report.overlays import draw_bands, draw_overlay, near_misses
@@ -75,12 +75,13 @@ class DetectRunOptions:
 class DetectRunResult:
     """Spots per image name, what was learned, where it went, a one-paragraph summary."""
 
-    out_dir: Path
+    out_dir: Path | None  # None: nothing written (the Python API)
     spots: dict[str, tuple[Spot, ...]]
     missing: dict[str, dict[str, str]]
     learned: BeamLinesResult | None
     n_images: int
     summary: str
+    record: dict[str, Any] = field(default_factory=dict)  # detections.json's content
 
     @property
     def success(self) -> bool:
@@ -159,11 +160,12 @@ def detect_many(frames: Sequence[Frame], rig: Rig, options: DetectRunOptions) ->
     return ManyResult(second, learned, search_rig)
 
 
-def _image_record(name: str, res: DetectionResult | None, review: float) -> dict[str, Any]:
-    """detections.json entry of one image."""
+def _image_record(name: str, res: DetectionResult | None, review: float,
+                  reason: str | None = None) -> dict[str, Any]:
+    """detections.json entry of one image (``reason``: why an image was not searched)."""
     if res is None:
-        return {"name": name, "readable": False, "spots": [], "missing": {},
-                "num_candidates": 0}
+        return {"name": name, "readable": False, "reason": reason or "not a readable image",
+                "spots": [], "missing": {}, "num_candidates": 0}
     return {
         "name": name, "readable": True,
         "spots": [{"laser": s.laser, "x": s.x, "y": s.y, "score": s.score,
@@ -216,22 +218,51 @@ def _summary(spots: dict[str, tuple[Spot, ...]], n_images: int, review: int,
     return text
 
 
-def run(inputs: DetectInputs, out_dir: Path,
+def _damaged(images: Sequence[LaserImage]) -> dict[str, str]:
+    """Image name -> why its data is damaged (a truncated JPEG), for the readable images."""
+    found = {}
+    for li in images:
+        why = damage(li.path) if li.camera is not None else None
+        if why is not None:
+            logger.warning("%s: %s; reported and skipped", li.path, why)
+            found[li.name] = why
+    return found
+
+
+def run(inputs: DetectInputs, out_dir: Path | None,
         options: DetectRunOptions = DetectRunOptions(),  # noqa: B008 (frozen)
         overwrite: bool = False) -> DetectRunResult:
-    """Detect spots in every image and write spots.csv, detections.json and overlays."""
+    """Detect spots in every image and write spots.csv, detections.json and overlays (``out_dir``
+    None: nothing written; ``DetectRunResult.record`` holds detections.json's content)."""
+    if out_dir is not None:
+        check_output_dir(out_dir, overwrite)
     rig = load_rig(inputs.rig)
     images = find_laser_images(list(inputs.images), _camera_model(inputs))
-    frames = [Frame(li.name, li.camera, functools.partial(read_rgb, li.path))
-              for li in images if li.camera is not None]
+    damaged = _damaged(images)
+    frames = [Frame(li.name, li.camera, functools.partial(read_rgb, li.path, check=False))
+              for li in images if li.camera is not None and li.name not in damaged]
     many = detect_many(frames, rig, options)
     results, learned, search_rig = many.results, many.learned, many.search_rig
     spots = {li.name: results[li.name].spots for li in images if li.name in results}
     review = sum(s.score < options.review_score for v in spots.values() for s in v)
-    record = {"images": [_image_record(li.name, results.get(li.name), options.review_score)
-                         for li in images],
+    record = {"images": [_image_record(li.name, results.get(li.name), options.review_score,
+                                       damaged.get(li.name)) for li in images],
               "learned_beam_lines": _lines_record(learned),
               "review_score": options.review_score}
+    if out_dir is not None:
+        _write(out_dir, overwrite, record, spots, images, results, search_rig, options)
+    missing = {n: dict(r.missing) for n, r in results.items()}
+    return DetectRunResult(out_dir=out_dir, spots=spots, missing=missing, learned=learned,
+                           n_images=len(images),
+                           summary=_summary(spots, len(images), review, learned),
+                           record=record)
+
+
+def _write(out_dir: Path, overwrite: bool, record: dict[str, Any],
+           spots: dict[str, tuple[Spot, ...]], images: Sequence[LaserImage],
+           results: dict[str, DetectionResult], search_rig: Rig,
+           options: DetectRunOptions) -> None:
+    """spots.csv, detections.json and the overlays, staged then moved into ``out_dir``."""
     with staged_output_dir(out_dir, overwrite) as tmp:
         write_spots_csv(tmp / "spots.csv", spots)
         (tmp / "detections.json").write_text(json.dumps(record, indent=2), encoding="utf-8")
@@ -241,7 +272,3 @@ def run(inputs: DetectInputs, out_dir: Path,
                 if li.name in results:
                     _write_overlay(tmp / "overlays" / (Path(li.name).stem + ".jpg"), li,
                                    search_rig, results[li.name], options.detection)
-    missing = {n: dict(r.missing) for n, r in results.items()}
-    return DetectRunResult(out_dir=out_dir, spots=spots, missing=missing, learned=learned,
-                           n_images=len(images),
-                           summary=_summary(spots, len(images), review, learned))

@@ -18,14 +18,28 @@ from typing import Any
 
 import numpy as np
 
-from sfm_laserscale import __version__
 from sfm_laserscale.detection import DetectionResult, detect_spots
 from sfm_laserscale.errors import InputError
+from sfm_laserscale.footprints import (
+    Footprint,
+    FootprintView,
+    footprint_summary,
+    footprints,
+    model_views,
+)
 from sfm_laserscale.fusion import FusedScale, fuse
 from sfm_laserscale.held_out import check_held_out, reused_registrations
+from sfm_laserscale.io.colmap_write import write_scaled_colmap_model
+from sfm_laserscale.io.footprints_csv import write_footprints_csv
 from sfm_laserscale.io.images import LaserImage, find_laser_images, read_rgb
-from sfm_laserscale.io.meshes.mesh import TriangleMesh, load_mesh
+from sfm_laserscale.io.in_memory import (
+    InMemoryInputs,
+    write_scaled_open3d_mesh,
+    write_scaled_reconstruction,
+)
+from sfm_laserscale.io.meshes.mesh import TriangleMesh, load_mesh, write_scaled_mesh
 from sfm_laserscale.io.models import load_model
+from sfm_laserscale.io.openmvg import write_scaled_openmvg_sfm_data
 from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
 from sfm_laserscale.io.spots_csv import read_spots_csv
 from sfm_laserscale.memory import trim_heap
@@ -48,6 +62,7 @@ from sfm_laserscale.provenance import (
     captured_colmap_log,
     captured_log,
     digests_in_background,
+    glog_without_files,
     merged_glog,
     progress_bar,
     provenance,
@@ -72,6 +87,7 @@ from sfm_laserscale.report.writer import build_report, summary_line, write_outpu
 from sfm_laserscale.rig import Rig, load_rig
 from sfm_laserscale.run_types import ImageRun, LoadedInputs, ScaleInputs, ScaleOptions, Timer
 from sfm_laserscale.uncertainty import ImageObservation, estimate_image
+from sfm_laserscale.version import __version__
 
 __all__ = ["ScaleInputs", "ScaleOptions", "ScaleResult", "run"]
 
@@ -88,16 +104,20 @@ class ScaleResult:
     methods: dict[str, FusedScale]
     images: tuple[ImageRun, ...]
     report: dict[str, Any]
-    out_dir: Path
+    out_dir: Path | None  # None: nothing was written
     summary: str
+    footprints: tuple[Footprint, ...] = ()  # every laser and model image's, in model units
 
 
-def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
+def load_inputs(inputs: ScaleInputs, options: ScaleOptions,
+                given: InMemoryInputs | None = None) -> LoadedInputs:
     """Read and validate every input; raises InputError on bad input (exit 2). The laser
     images' SIFT starts in worker processes as soon as they are listed (``sift_pool``), or
-    once the model images' are done when those are re-extracted (``--images``)."""
+    once the model images' are done when those are re-extracted (``--images``). ``given``:
+    a model and/or mesh already in memory, used instead of reading ``inputs.model``/``mesh``."""
+    given = given or InMemoryInputs()
     rig = load_rig(inputs.rig)
-    model = load_model(inputs.model)
+    model = given.model if given.model is not None else load_model(inputs.model)
     laser_images = find_laser_images(inputs.laser_images, model)
     held = check_held_out(laser_images, model, inputs.model_images or inputs.images)
     laser_images, reused = (reused_registrations(held, laser_images, model, options.registration)
@@ -114,7 +134,7 @@ def load_inputs(inputs: ScaleInputs, options: ScaleOptions) -> LoadedInputs:
         model, index = _load_index(inputs, model, options)
         if reextract:
             pool = start_sift_pool(laser_images, options.sift, options.sift_workers)
-        mesh = load_mesh(inputs.mesh)
+        mesh = given.mesh if given.mesh is not None else load_mesh(inputs.mesh)
     except BaseException:
         if pool is not None:
             pool.close()
@@ -178,7 +198,9 @@ def detect_and_register(image: LaserImage, loaded: LoadedInputs, options: ScaleO
     try:
         rgb = read_rgb(image.path)
     except InputError as exc:
-        return _image_run(image, f"cannot read image: {exc.problem}")
+        logger.warning("laser image %s: %s; reported and skipped", image.path, exc.problem)
+        damaged = exc.problem.startswith("damaged")
+        return _image_run(image, exc.problem if damaged else f"cannot read image: {exc.problem}")
     with timer("detect"):
         spots, det, spot_reasons = _spots_for(image.name, rgb, camera, loaded, options)
     if loaded.index is None:
@@ -369,12 +391,30 @@ def register_all(loaded: LoadedInputs, options: ScaleOptions, timer: Timer) -> l
     return runs
 
 
+def image_footprints(runs: Sequence[ImageRun], loaded: LoadedInputs,
+                     options: ScaleOptions) -> tuple[Footprint, ...]:
+    """The footprint on the whole mesh of every laser image (registered ones; the others with
+    their reason) and of every model image, in model units (footprints.py)."""
+    if not options.footprints.enabled or loaded.mesh is None:
+        return ()
+    views = [FootprintView(r.name, "laser", r.camera, None if v is None else v[1],
+                           None if v is not None else r.reason or "not registered")
+             for r in runs for v in [_view(r)]]
+    views += model_views(loaded.model)
+    return footprints(views, loaded.mesh.vertices, loaded.mesh.triangles, options.footprints,
+                      progress=lambda batches: progress_bar(
+                          options.progress, "footprints", iterable=batches, unit="group"))
+
+
 def _estimate_all(
     inputs: ScaleInputs, loaded: LoadedInputs, runs: list[ImageRun], options: ScaleOptions,
-    timer: Timer,
-) -> tuple[LoadedInputs, list[ImageRun], MethodFusion, dict[str, Any]]:
-    """Crop the mesh to the rays, cast and estimate every image, fuse, check the mesh against
-    the model: (inputs without the full mesh, runs, fusion, checks)."""
+    timer: Timer, given: InMemoryInputs,
+) -> tuple[LoadedInputs, list[ImageRun], MethodFusion, dict[str, Any], tuple[Footprint, ...]]:
+    """Measure every image's footprint, crop the mesh to the rays, cast and estimate every
+    image, fuse, check the mesh against the model: (inputs without the full mesh, runs,
+    fusion, checks, footprints)."""
+    with timer("footprints"):
+        found = image_footprints(runs, loaded, options)
     with timer("raycast"):
         crop = crop_mesh(runs, loaded, options)
         loaded = replace(loaded, mesh=None)  # the crop is all the rest needs
@@ -383,7 +423,9 @@ def _estimate_all(
     logger.info("mesh cropped to the spots' rays and the check points: %d of %d triangles "
                 "(%.2f %%)", len(crop.triangles), crop.source_triangles, 100 * crop.kept_fraction)
     with timer("estimate"):
-        field = intrinsics_field(inputs.model, runs, options)
+        field = intrinsics_field(
+            lambda: given.model if given.model is not None else load_model(inputs.model),
+            runs, options)
         offset = shared_mesh_offset(runs, caster, field, options)
     runs = [cast_and_estimate(r, loaded, caster, options, timer, field, offset) for r in runs]
     for r in runs:
@@ -396,32 +438,70 @@ def _estimate_all(
     fusion = MethodFusion(head, methods, fusion.pcm_joint, model_checks, field)
     checks = {"mesh_model_agreement": mesh_model_agreement(
         mesh_check_points(runs, options, loaded.model.extent), caster, loaded.model.extent,
-        lambda: load_mesh(inputs.mesh))}
+        lambda: given.mesh if given.mesh is not None else load_mesh(inputs.mesh))}
     logger.info("timings so far: %s", timer.as_dict())
-    return loaded, runs, fusion, checks
+    return loaded, runs, fusion, checks, found
 
 
-def _provenance_inputs(inputs: ScaleInputs, loaded: LoadedInputs) -> list[Path | None]:
-    """The files the provenance block hashes: every input of the run."""
-    return [inputs.model, inputs.mesh, inputs.rig, inputs.database, inputs.spots,
-            *(li.path for li in loaded.laser_images)]
+def write_footprints(out: Path, found: Sequence[Footprint], scale: float) -> None:
+    """footprints.csv in ``out`` when there is a scale and footprints were measured."""
+    if found and np.isfinite(scale):
+        write_footprints_csv(out / "footprints.csv", [f.metric(scale) for f in found])
+
+
+def _provenance_inputs(inputs: ScaleInputs, loaded: LoadedInputs,
+                       given: InMemoryInputs) -> list[Path | None]:
+    """The files the provenance block hashes: every input of the run given as a file."""
+    return [None if given.model is not None else inputs.model,
+            None if given.mesh is not None else inputs.mesh,
+            inputs.rig, inputs.database, inputs.spots, *(li.path for li in loaded.laser_images)]
+
+
+def _scaled_writer(inputs: ScaleInputs,
+                   given: InMemoryInputs) -> Callable[[Path, float], None] | None:
+    """How ``scaled/`` is written when a model or mesh was given in memory (None: from the
+    files, report/writer.py): the object rescaled (COLMAP binary model, mesh.ply), the other
+    input from its file."""
+    if given.reconstruction is None and given.open3d_mesh is None:
+        return None
+
+    def write(scaled: Path, scale: float) -> None:
+        if given.reconstruction is not None:
+            write_scaled_reconstruction(given.reconstruction, scaled / "model", scale)
+        elif load_model(inputs.model).source_format == "openmvg":
+            write_scaled_openmvg_sfm_data(inputs.model, scaled / "model" / "sfm_data.json",
+                                          scale)
+        else:
+            write_scaled_colmap_model(inputs.model, scaled / "model", scale)
+        if given.open3d_mesh is not None:
+            write_scaled_open3d_mesh(given.open3d_mesh, scaled, scale)
+        else:
+            write_scaled_mesh(inputs.mesh, scaled, scale)
+
+    return write
 
 
 def run(
     inputs: ScaleInputs,
-    out_dir: Path,
+    out_dir: Path | None,
     options: ScaleOptions = ScaleOptions(),  # noqa: B008
     overwrite: bool = False,
+    given: InMemoryInputs | None = None,
 ) -> ScaleResult:
-    """The whole ``scale`` command: estimate, fuse and write every output (docs/OUTPUTS.md)."""
-    check_output_dir(out_dir, overwrite)
+    """The whole ``scale`` command: estimate, fuse and write every output (docs/OUTPUTS.md).
+    ``out_dir`` None: nothing is written (not even pycolmap's log capture); the result holds
+    the report. ``given``: a model and/or mesh already in memory (the Python API)."""
+    given = given or InMemoryInputs()
+    if out_dir is not None:
+        check_output_dir(out_dir, overwrite)
     timer = Timer()
-    with captured_log() as log_lines, captured_colmap_log() as colmap_log:
+    glog_capture = captured_colmap_log() if out_dir is not None else glog_without_files()
+    with captured_log() as log_lines, glog_capture as colmap_log:
         logger.info("sfm-laserscale %s: scale %s", __version__, inputs)
         for line in inputs.found:  # what a pipeline folder held and what was chosen
             logger.info("found in the pipeline folder: %s", line)
         with timer("load"):
-            loaded = load_inputs(inputs, options)
+            loaded = load_inputs(inputs, options, given)
         worker_glog: list[str] = []
         try:
             runs = register_all(loaded, options, timer)
@@ -434,27 +514,37 @@ def run(
         trim_heap()
         # the SIFT workers are done: the inputs' SHA-256 for the provenance is computed on
         # the core they leave, beside the rest of the run
-        hashed = _provenance_inputs(inputs, loaded)
+        hashed = _provenance_inputs(inputs, loaded, given)
         with digests_in_background(hashed) as digests:
-            loaded, runs, fusion, checks = _estimate_all(inputs, loaded, runs, options, timer)
+            loaded, runs, fusion, checks, found = _estimate_all(inputs, loaded, runs, options,
+                                                                timer, given)
             headline, fused, joint = fusion.headline, fusion.methods, fusion.pcm_joint
-            with staged_output_dir(out_dir, overwrite) as tmp, timer("write"):
-                report = build_report(inputs, options, loaded, runs, headline, fused, checks, timer,
-                                      pcm_joint=joint, model=fusion)
+            with timer("write"):
+                report = build_report(inputs, options, loaded, runs, headline, fused, checks,
+                                      timer, pcm_joint=joint, model=fusion)
                 report["provenance"] = provenance(hashed, options, digests)
                 add_input_keys(report, inputs, loaded.held_out, options.reuse_model_poses)
-                write_outputs(tmp, inputs, loaded, runs, headline, report, options, timer)
-                logger.info("run finished: %s", report["timings_s"])
-                glog = merged_glog(colmap_log.lines(), worker_glog)
-                (tmp / "run.log").write_text(run_log_text(log_lines, glog), encoding="utf-8")
-    success = bool(np.isfinite(headline.value))
-    summary = summary_line(headline, runs)
+                report["footprints"] = (footprint_summary(found, headline.value)
+                                        if found and np.isfinite(headline.value) else None)
+            if out_dir is not None:
+                with staged_output_dir(out_dir, overwrite) as tmp, timer("write"):
+                    write_footprints(tmp, found, headline.value)
+                    write_outputs(tmp, inputs, loaded, runs, headline, report, options, timer,
+                                  write_scaled=_scaled_writer(inputs, given))
+                    logger.info("run finished: %s", report["timings_s"])
+                    glog = merged_glog(colmap_log.lines(), worker_glog)
+                    (tmp / "run.log").write_text(run_log_text(log_lines, glog),
+                                                 encoding="utf-8")
+            else:
+                report["timings_s"] = timer.as_dict()
     return ScaleResult(
-        success=success,
+        success=bool(np.isfinite(headline.value)),
         scale=headline,
         methods=fused,
         images=tuple(runs),
         report=report,
         out_dir=out_dir,
-        summary=summary,
+        summary=summary_line(headline, runs),
+        footprints=found,
     )
+

@@ -20,8 +20,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
-from sfm_laserscale.report.simulate_plots import simulation_figures
 from sfm_laserscale.synthetic.simulate.configs import SimulationInputs, SimulationOptions
 from sfm_laserscale.synthetic.simulate.mismatch import (
     MismatchOptions,
@@ -57,8 +57,22 @@ def write_trials_csv(path: Path, col: Collected) -> None:
         w.writerows(_trial_rows(col))
 
 
+def require_matplotlib() -> None:
+    """InputError (exit 2) with the install line when matplotlib, an optional dependency that
+    only ``simulate``'s figures use, is missing; checked before any trial runs."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise InputError("simulate draws its figures with matplotlib, which is not installed: "
+                         "pip install 'sfm-laserscale[simulate]' (or pip install matplotlib)"
+                         ) from None
+
+
 def write_simulation(out_dir: Path, result: SimulationResult, overwrite: bool) -> None:
     """results.json, table.md, trials.csv.gz and the figures, staged then moved into place."""
+    require_matplotlib()
+    from sfm_laserscale.report.simulate_plots import simulation_figures
+
     with staged_output_dir(out_dir, overwrite) as tmp:
         t0 = time.perf_counter()
         for name, png in simulation_figures(result).items():
@@ -75,6 +89,7 @@ def run(inputs: SimulationInputs, out_dir: Path,
         options: SimulationOptions = SimulationOptions(),  # noqa: B008
         overwrite: bool = False) -> SimulationResult:
     """The ``simulate`` command: run the experiments and write every output into ``out_dir``."""
+    require_matplotlib()
     check_output_dir(out_dir, overwrite)
     result = simulate(inputs, options)
     write_simulation(out_dir, result, overwrite)

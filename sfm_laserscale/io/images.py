@@ -102,8 +102,36 @@ _STORED_COLOR = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION
 _STORED_GRAY = cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION
 
 
-def read_rgb(path: Path) -> NDArray[np.uint8]:
-    """(H, W, 3) uint8 RGB, in the stored pixel frame; InputError when unreadable."""
+def damage(path: Path) -> str | None:
+    """Why the image data of ``path`` is damaged, or None. A JPEG cut short (an interrupted
+    copy or download) still decodes in OpenCV, its missing part grey, with only a libjpeg
+    warning on stderr; the whole entropy-coded stream is read here (Pillow, at 1/8 scale: a
+    third of a full decode) and its end checked. Other formats: OpenCV refuses them whole."""
+    try:
+        im = PILImage.open(path)
+    except (UnidentifiedImageError, OSError, ValueError):
+        return None  # not an image Pillow knows: OpenCV decides (not readable at all)
+    with im:
+        if im.format != "JPEG":
+            return None
+        try:
+            im.draft("RGB", (max(1, im.size[0] // 8), max(1, im.size[1] // 8)))
+            im.load()
+        except (OSError, ValueError, SyntaxError) as exc:
+            why = str(exc) or type(exc).__name__
+            if "truncated" in why:
+                return f"damaged image: the JPEG data is cut short, the file is truncated ({why})"
+            return f"damaged image: the JPEG data does not decode ({why})"
+    return None
+
+
+def read_rgb(path: Path, check: bool = True) -> NDArray[np.uint8]:
+    """(H, W, 3) uint8 RGB, in the stored pixel frame; InputError when unreadable, or
+    (``check``) damaged (:func:`damage`: a truncated JPEG)."""
+    if check:
+        why = damage(path)
+        if why is not None:
+            raise InputError(why, path)
     bgr = cv2.imread(str(path), _STORED_COLOR)
     if bgr is None:
         raise InputError("not a readable image", path)

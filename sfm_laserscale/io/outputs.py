@@ -1,14 +1,19 @@
 """Output folder handling: refuse non-empty folders, write beside them, move at the end.
 
 A run that dies leaves either no ``--out`` or the previous complete one, never
-a half-written folder. The staging folder ``.<out>.partial-<pid>-<random>`` sits beside
+a half-written folder. The staging folder ``.<out>.partial-<token>`` sits beside
 ``--out`` (same file system, so the final move is a rename). An existing ``--out``
 (``--overwrite``) is swapped with the staged one in one atomic step (Linux ``renameat2``
 with ``RENAME_EXCHANGE``); where that is unsupported it is first renamed to
-``.<out>.old-<pid>``, so at every instant either the old or the new complete folder exists.
-Staging and old folders left by killed runs (their process is gone) are removed by the
-next run on the same ``--out``; an old folder is moved back when ``--out`` is missing.
-Protects against a killed process, not against power loss (no fsync).
+``.<out>.old-<token>``, so at every instant either the old or the new complete folder exists.
+
+Who owns a staging folder is told by a lock, not by a process id: the run holds an ``flock``
+on ``.<out>.lock-<token>`` (:mod:`sfm_laserscale.io.run_lock`) from before the folder exists
+until after it is gone, and the kernel drops the lock when the run dies, even by SIGKILL. The
+next run on the same ``--out`` removes the staging and old folders whose lock it can take (or
+whose lock file is missing: folders of older versions), and moves an old folder back when
+``--out`` is missing. (A process-id check kept them forever in containers, where every run is
+pid 1.) Protects against a killed process, not against power loss (no fsync).
 """
 
 from __future__ import annotations
@@ -21,11 +26,11 @@ import os
 import re
 import shutil
 import sys
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 from sfm_laserscale.errors import InputError
+from sfm_laserscale.io.run_lock import claim_if_abandoned, create_lock
 
 logger = logging.getLogger(__name__)
 
@@ -62,21 +67,45 @@ def pid_alive(pid: int) -> bool:
     return True
 
 
+def _staging_names(out: Path) -> re.Pattern[str]:
+    """``.<out>.partial-<token>``, ``.<out>.old-<token>`` and ``.<out>.lock-<token>``."""
+    return re.compile(rf"^\.{re.escape(out.name)}\.(partial|old|lock)-(.+)$")
+
+
 def clean_stale_staging(out: Path) -> list[Path]:
-    """Remove the staging/old folders of dead runs beside ``out``; restore an old ``out`` that
-    a killed run had moved aside before its new one was in place. Returns what was removed."""
+    """Remove the staging/old folders of dead runs beside ``out`` (their lock can be taken, or
+    has no file); restore an old ``out`` that a killed run had moved aside before its new one
+    was in place. Returns what was removed (lock files not listed)."""
     out = Path(out).resolve()
-    pattern = re.compile(rf"^\.{re.escape(out.name)}\.(partial|old)-(\d+)(-.*)?$")
-    removed: list[Path] = []
+    pattern = _staging_names(out)
     try:
         entries = sorted(out.parent.iterdir())
     except OSError:
-        return removed
+        return []
+    by_token: dict[str, dict[str, Path]] = {}
     for entry in entries:
         m = pattern.match(entry.name)
-        if m is None or not entry.is_dir() or entry.is_symlink() or pid_alive(int(m[2])):
+        if m is not None and not entry.is_symlink():
+            by_token.setdefault(m[2], {})[m[1]] = entry
+    removed: list[Path] = []
+    for token, found in by_token.items():
+        lock = claim_if_abandoned(out.parent / f".{out.name}.lock-{token}")
+        if lock is None:
+            continue  # a live run holds it
+        with lock:
+            removed += _tidy_dead_run(out, found)
+    return removed
+
+
+def _tidy_dead_run(out: Path, found: dict[str, Path]) -> list[Path]:
+    """The staging and old folders of one dead run: the old output goes back in place when
+    ``out`` is missing, the rest is removed."""
+    removed = []
+    for kind in ("partial", "old"):
+        entry = found.get(kind)
+        if entry is None or not entry.is_dir():
             continue
-        if m[1] == "old" and not out.exists():
+        if kind == "old" and not out.exists():
             logger.warning("restoring %s, left aside by a killed run", out)
             os.replace(entry, out)
             continue
@@ -88,20 +117,26 @@ def clean_stale_staging(out: Path) -> list[Path]:
 
 @contextlib.contextmanager
 def staged_output_dir(out: Path, overwrite: bool) -> Iterator[Path]:
-    """Yield a temporary folder beside ``out``; on success it replaces ``out`` atomically."""
+    """Yield a temporary folder beside ``out``; on success it replaces ``out`` atomically. The
+    folder is guarded by a lock this process holds until the folder is gone."""
     check_output_dir(out, overwrite)
     out = out.resolve()
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-{os.getpid()}-",
-                                    dir=out.parent))
+        token, lock = create_lock(out.parent, f".{out.name}.lock-")
     except OSError as exc:
-        raise InputError(f"output folder cannot be written ({exc.strerror})", out) from None
-    try:
-        yield tmp
-        _replace_dir(tmp, out, overwrite)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        raise InputError(f"output folder cannot be written ({exc})", out) from None
+    with lock:
+        tmp = out.parent / f".{out.name}.partial-{token}"
+        try:
+            tmp.mkdir()
+        except OSError as exc:
+            raise InputError(f"output folder cannot be written ({exc.strerror})", out) from None
+        try:
+            yield tmp
+            _replace_dir(tmp, out, overwrite, token)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
 
 
 def _exchange(a: Path, b: Path) -> bool:
@@ -123,7 +158,7 @@ def _exchange(a: Path, b: Path) -> bool:
     raise OSError(err, os.strerror(err), str(b))
 
 
-def _replace_dir(tmp: Path, out: Path, overwrite: bool = True) -> None:
+def _replace_dir(tmp: Path, out: Path, overwrite: bool = True, token: str = "0") -> None:
     """Move the complete staged folder ``tmp`` to ``out``; the previous ``out`` (if any) is
     dropped only once the new one is in place."""
     if not out.exists():
@@ -134,7 +169,7 @@ def _replace_dir(tmp: Path, out: Path, overwrite: bool = True) -> None:
         if _exchange(tmp, out):
             shutil.rmtree(tmp, ignore_errors=True)  # tmp now holds the previous output
         else:
-            old = out.parent / f".{out.name}.old-{os.getpid()}"
+            old = out.parent / f".{out.name}.old-{token}"
             os.replace(out, old)
             os.replace(tmp, out)
             shutil.rmtree(old, ignore_errors=True)

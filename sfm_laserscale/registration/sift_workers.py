@@ -15,7 +15,6 @@ and the run goes on, with a warning naming the worker's last error output.
 
 from __future__ import annotations
 
-import ctypes
 import logging
 import os
 import pickle
@@ -32,6 +31,7 @@ from typing import IO, Any
 
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.images import LaserImage, read_rgb
+from sfm_laserscale.lifecycle import die_with_parent
 from sfm_laserscale.model import ImageFeatures
 from sfm_laserscale.provenance import glog_lines
 from sfm_laserscale.registration.options import SiftOptions
@@ -41,7 +41,7 @@ from sfm_laserscale.resources import available_cpus, available_memory_bytes
 logger = logging.getLogger(__name__)
 
 _READY = "ready"
-_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+_PARENT_ENV = "SFM_LASERSCALE_PARENT_PID"
 
 
 @dataclass(frozen=True)
@@ -140,7 +140,8 @@ class SiftPool:
         here = str(Path(__file__).resolve().parents[2])  # the folder holding sfm_laserscale
         path = os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p)
         # glog keeps writing to stderr (the file above): its lines go into run.log
-        env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=path)
+        env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=path,
+                   **{_PARENT_ENV: str(os.getpid())})
         try:
             proc = subprocess.Popen([sys.executable or "python3", "-m", __name__],
                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err,
@@ -307,21 +308,16 @@ def _serve_requests(inp: IO[bytes], out: IO[bytes]) -> None:
         out.flush()
 
 
-def _die_with_parent() -> None:
-    """Linux: the kernel kills this worker when the thread that started it dies (a killed
-    run leaves no worker finishing an image nobody will read); elsewhere a no-op."""
-    try:
-        libc = ctypes.CDLL(None)
-        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
-    except (OSError, AttributeError):  # pragma: no cover - not Linux
-        return
-    if os.getppid() == 1:  # the parent died before prctl: nobody will read the results
-        os._exit(0)
-
-
 def main() -> None:
     """Worker entry point: results on the original stdout, anything printed goes to stderr."""
-    _die_with_parent()
+    # the kernel kills this worker when the run dies, even by SIGKILL; Ctrl-C is the run's
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    die_with_parent(int(os.environ.get(_PARENT_ENV, os.getppid())))
+    # pycolmap's (glog) lines to stderr, which the parent keeps for run.log: glog's default
+    # would also leave a log file per worker in the temporary folder, never removed
+    import pycolmap
+
+    pycolmap.logging.logtostderr = True
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     _serve_requests(sys.stdin.buffer, out)

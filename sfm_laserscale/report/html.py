@@ -34,6 +34,7 @@ from sfm_laserscale.report.analysis import (
     annotate,
     pcm_joint_fell_back,
 )
+from sfm_laserscale.report.footprint_plot import footprint_histogram
 from sfm_laserscale.report.model_plots import model_plots
 from sfm_laserscale.report.plots import methods_plot, per_laser_method, per_laser_plot
 from sfm_laserscale.report.style import laser_color_hex
@@ -166,7 +167,8 @@ def render_html(report: dict[str, Any], out_dir: Path) -> str:
     """The HTML report for people; every number comes from ``report`` (report.json's dict)."""
     if "diagnostics" not in report:  # a report.json written before the derived keys existed
         report = annotate(json.loads(json.dumps(report)))
-    plots = {"per_laser": per_laser_plot(report), "methods": methods_plot(report)}
+    plots = {"per_laser": per_laser_plot(report), "methods": methods_plot(report),
+             "footprints": footprint_histogram(report)}
     plots.update(model_plots(report))  # the model checks' plots (report/model_plots.py)
     methods = [m for m in METHOD_ORDER if m in report["methods"]]
     methods += [m for m in report["methods"] if m not in methods]

@@ -9,14 +9,13 @@ import json
 import logging
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from sfm_laserscale import __version__
 from sfm_laserscale.fusion import FusedScale
 from sfm_laserscale.geometry import qvec_from_rotmat
 from sfm_laserscale.io.colmap_write import write_scaled_colmap_model
@@ -37,8 +36,10 @@ from sfm_laserscale.report.model_report import (
     pair_checks_dict,
 )
 from sfm_laserscale.report.overlays import draw_overlay, near_misses, reprojected_points
+from sfm_laserscale.report.schema import SCHEMA_VERSION, UNITS
 from sfm_laserscale.report.validate import check_html
 from sfm_laserscale.run_types import ImageRun, LoadedInputs, ScaleInputs, ScaleOptions, Timer
+from sfm_laserscale.version import __version__
 
 logger = logging.getLogger(__name__)
 
@@ -197,6 +198,8 @@ def build_report(
     ``model``: the run's ``MethodFusion`` (its model checks and the model intrinsics' error)."""
     report: dict[str, Any] = {
         "version": __version__,
+        "schema_version": SCHEMA_VERSION,  # report.schema.json (report/schema.py)
+        "units": dict(UNITS),
         "scale": fused_to_dict(headline),
         "methods": {m: fused_to_dict(f) for m, f in fused.items()},
         "images": [_image_dict(r) for r in runs],
@@ -316,7 +319,7 @@ def _write_overlays(
     for run in progress_bar(options.progress, "overlays", iterable=runs, unit="img"):
         if run.camera is None:
             continue
-        rgb = read_rgb(run.path)
+        rgb = read_rgb(run.path, check=False)  # a damaged image's overlay shows the damage
         scales, rejected = _overlay_labels(by_name[run.name])
         points, pose_rejected = _registration_points(run)
         img = draw_overlay(
@@ -361,9 +364,11 @@ def write_outputs(
     report: dict[str, Any],
     options: ScaleOptions,
     timer: Timer,
+    write_scaled: Callable[[Path, float], None] | None = None,
 ) -> None:
     """Every output file of ``scale`` (docs/OUTPUTS.md) into ``out`` (report.json last, with
-    final timings)."""
+    final timings). ``write_scaled(scaled_dir, scale)``: writes ``scaled/`` instead of the
+    rescaling of the input files (a model or mesh given in memory, commands/scale.py)."""
     t0 = time.perf_counter()
     write_estimates_csv(out / "estimates.csv", runs)
     append_segment_rows(out / "estimates.csv", report)
@@ -371,7 +376,11 @@ def write_outputs(
     if math.isfinite(headline.value):
         write_sim3(out / "transform.sim3", headline.value)
         write_matrix_4x4(out / "transform_4x4.txt", headline.value)
-        _write_scaled(out, inputs, loaded, headline.value, options.progress)
+        if write_scaled is None:
+            _write_scaled(out, inputs, loaded, headline.value, options.progress)
+        else:
+            (out / "scaled").mkdir()
+            write_scaled(out / "scaled", headline.value)
     overlays = _write_overlays(out, runs, loaded, options, report) if options.overlays else {}
     for im in report["images"]:
         im["overlay"] = overlays.get(im["name"])

@@ -5,11 +5,9 @@ from __future__ import annotations
 
 import logging
 import math
-import multiprocessing
 import sys
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, replace
 from typing import Any
@@ -17,7 +15,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from sfm_laserscale import __version__
+from sfm_laserscale.lifecycle import process_pool
 from sfm_laserscale.model import Camera
 from sfm_laserscale.raycast import MeshRaycaster
 from sfm_laserscale.rig import Rig
@@ -41,6 +39,7 @@ from sfm_laserscale.synthetic.simulate.stats import grid_maps, overall, summariz
 from sfm_laserscale.synthetic.simulate.tables import markdown_report
 from sfm_laserscale.synthetic.simulate.trial import TrialContext, TrialRecord, run_trial
 from sfm_laserscale.synthetic.simulate.views import ViewJob, grid_angles, make_jobs
+from sfm_laserscale.version import __version__
 
 logger = logging.getLogger(__name__)
 
@@ -73,8 +72,9 @@ Mapper = Callable[[Callable[[Any], Any], Sequence[Any]], Iterator[Any]]
 def worker_pool(caster: MeshRaycaster, settings: tuple[LaserSetting, ...],
                 options: SimulationOptions, n_jobs: int) -> Iterator[Mapper]:
     """An ordered ``map`` for trials and groups: in this process, or in ``options.workers``
-    spawned processes (each builds its own ray caster once). Spawned processes import the
-    caller's main module: a script calling this with workers > 1 needs the usual
+    spawned processes (each builds its own ray caster once; they never outlive the run).
+    Spawned processes import the caller's main module: a script calling this with
+    workers > 1 needs the usual
     ``if __name__ == "__main__":`` guard (without it the pool never starts)."""
     global _WORKER
     if options.workers == 1 or n_jobs < 8 * options.workers:
@@ -86,10 +86,11 @@ def worker_pool(caster: MeshRaycaster, settings: tuple[LaserSetting, ...],
             _WORKER = previous
         return
     quiet = replace(options, progress=False)
-    with ProcessPoolExecutor(options.workers, mp_context=multiprocessing.get_context("spawn"),
-                             initializer=_init_worker,
-                             initargs=(caster.vertices, caster.triangles, options.camera,
-                                       settings, quiet)) as pool:
+    # workers die with this process and are killed when the run ends early (a signal, an
+    # error): none is left computing trials nobody will read (sfm_laserscale.lifecycle)
+    with process_pool(options.workers, initializer=_init_worker,
+                      initargs=(caster.vertices, caster.triangles, options.camera,
+                                settings, quiet)) as pool:
         def pmap(fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[Any]:
             chunk = max(1, min(16, len(items) // (8 * options.workers)))
             return pool.map(fn, items, chunksize=chunk)
