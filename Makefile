@@ -27,8 +27,9 @@ lint: install
 typecheck: install
 	$(BIN)/mypy sfm_laserscale
 
+# two pytest workers (pytest-xdist): the suite is mostly single-threaded, and CI has 2 cores
 unit: install
-	$(BIN)/python -m pytest -q -x tests
+	$(BIN)/python -m pytest -q -x -n 2 tests
 
 test: lint typecheck unit
 
