@@ -146,7 +146,7 @@ def _gls(values: F64, cov: F64) -> tuple[F64, float]:
     return w, (max(chi2, 0.0) if np.isfinite(chi2) else 0.0)
 
 
-def _leave_one_out_z(values: F64, cov: F64) -> F64:
+def leave_one_out_z(values: F64, cov: F64) -> F64:
     """|s_k − GLS mean of the others| / σ of that difference, for each k."""
     z = np.zeros(len(values))
     for k in range(len(values)):
@@ -194,7 +194,7 @@ def combine_image(est: ImageEstimates, method: str, options: FusionOptions
                                 np.asarray(est.rig_jacobian[method]))
     c_tot = c_rand + g_all @ g_all.T
     while len(keep) >= 3:
-        z = _leave_one_out_z(u[keep], c_tot[np.ix_(keep, keep)])
+        z = leave_one_out_z(u[keep], c_tot[np.ix_(keep, keep)])
         worst = int(np.argmax(z))
         if z[worst] <= options.within_image_threshold:
             break

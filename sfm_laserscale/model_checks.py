@@ -34,7 +34,13 @@ from sfm_laserscale.focal_fit import (
     fused_focal_sensitivity,
     widen_for_focal,
 )
-from sfm_laserscale.fusion import FusedScale, FusionOptions, combine_image, fuse
+from sfm_laserscale.fusion import (
+    FusedScale,
+    FusionOptions,
+    combine_image,
+    fuse,
+    leave_one_out_z,
+)
 from sfm_laserscale.uncertainty import ImageEstimates
 
 F64 = NDArray[np.float64]
@@ -53,6 +59,11 @@ class ModelCheckOptions:
     min_distance_spread: float = 0.1  # distance range / mean below this: no distance test
     max_segments: int = 3
     min_images_per_segment: int = 2
+    # scatter test: an image's one estimate beyond this leave-one-out |z| is a gross error (a
+    # wrong spot, reported as fusion's rejection), not a σ understated across the board; left
+    # out of the χ² while such estimates are at most ``max_gross_share`` of those tested
+    gross_z: float = 8.0
+    max_gross_share: float = 0.1
     focal: FocalFitOptions = field(default_factory=FocalFitOptions)
 
 
@@ -110,6 +121,7 @@ class ScatterTest:
     ratio: float  # √(χ² / dof)
     p: float
     ok: bool
+    gross: tuple[str, ...] = ()  # "laser in image" of the gross errors left out of the χ²
 
 
 @dataclass(frozen=True)
@@ -368,36 +380,64 @@ def segments(estimates: Sequence[ImageEstimates], points: Sequence[ImagePoint], 
     return tuple(out)
 
 
-def _within_chi2(est: ImageEstimates, method: str) -> tuple[float, int]:
+@dataclass(frozen=True)
+class _WithinImage:
+    """One image's χ² about its GLS mean, with and without its gross error (if any)."""
+
+    chi2: float
+    dof: int
+    chi2_trimmed: float
+    dof_trimmed: int
+    gross: str | None  # "laser in image" of the estimate left out of the trimmed χ²
+    n: int  # estimates tested
+
+
+def _gls_chi2(u: F64, cov: F64) -> float:
+    w = np.linalg.pinv(cov, hermitian=True)
+    ones = np.ones(len(u))
+    r = u - float(ones @ w @ u) / float(ones @ w @ ones)
+    return max(float(r @ w @ r), 0.0)
+
+
+def _within_chi2(est: ImageEstimates, method: str, gross_z: float) -> _WithinImage:
     """χ² (and dof) of an image's estimates that the estimators accepted (also those fusion
-    left out as inconsistent) about their GLS mean, in 1/s with their full covariance."""
+    left out as inconsistent) about their GLS mean, in 1/s with their full covariance; and the
+    same without its worst estimate when that one lies beyond ``gross_z`` (leave-one-out, with
+    at least 3 estimates: with 2 the culprit is unknown)."""
     ests = est.of(method)
     keep = [i for i, e in enumerate(ests) if not e.rejected and math.isfinite(e.scale)
             and math.isfinite(e.sigma) and e.sigma > 0 and e.scale > 0]
     if len(keep) < 2:
-        return 0.0, 0
+        return _WithinImage(0.0, 0, 0.0, 0, None, len(keep))
     v = np.array([ests[i].scale for i in keep])
     d = 1.0 / v**2
     cov = np.asarray(est.covariance[method])[np.ix_(keep, keep)] * np.outer(d, d)
     u = 1.0 / v
-    w = np.linalg.pinv(cov, hermitian=True)
-    ones = np.ones(len(u))
-    mean = float(ones @ w @ u) / float(ones @ w @ ones)
-    r = u - mean
-    return max(float(r @ w @ r), 0.0), len(keep) - 1
+    chi2 = _gls_chi2(u, cov)
+    if len(keep) >= 3:
+        z = leave_one_out_z(u, cov)
+        k = int(np.argmax(z))
+        if z[k] > gross_z:
+            o = np.delete(np.arange(len(keep)), k)
+            return _WithinImage(chi2, len(keep) - 1, _gls_chi2(u[o], cov[np.ix_(o, o)]),
+                                len(keep) - 2, f"{ests[keep[k]].laser} in {est.image}",
+                                len(keep))
+    return _WithinImage(chi2, len(keep) - 1, chi2, len(keep) - 1, None, len(keep))
 
 
 def scatter_test(estimates: Sequence[ImageEstimates], fused: FusedScale, method: str,
                  options: ModelCheckOptions, fusion: FusionOptions) -> ScatterTest | None:
     """Within-image χ² of the images fusion kept (every accepted estimate: a spot fusion left
-    out is evidence too) plus the between-image χ², one test."""
+    out is evidence too) plus the between-image χ², one test. An image's single gross error
+    (beyond ``gross_z``) is left out while such errors are at most ``max_gross_share`` of the
+    estimates: one wrong spot is not a σ understated across the board (fusion reports it)."""
     used = set(fused.images_used)
-    chi2, dof = 0.0, 0
-    for est in estimates:
-        if est.image in used:
-            c, k = _within_chi2(est, method)
-            chi2 += c
-            dof += k
+    parts = [_within_chi2(est, method, options.gross_z) for est in estimates
+             if est.image in used]
+    gross = tuple(w.gross for w in parts if w.gross is not None)
+    trim = bool(gross) and len(gross) <= options.max_gross_share * sum(w.n for w in parts)
+    chi2 = sum(w.chi2_trimmed if trim else w.chi2 for w in parts)
+    dof = sum(w.dof_trimmed if trim else w.dof for w in parts)
     n = len(used)
     if n > 1 and math.isfinite(fused.birge_ratio):
         chi2 += fused.birge_ratio**2 * (n - 1)
@@ -405,7 +445,8 @@ def scatter_test(estimates: Sequence[ImageEstimates], fused: FusedScale, method:
     if dof == 0:
         return None
     p = float(stats.chi2.sf(chi2, dof))
-    return ScatterTest(chi2, dof, math.sqrt(chi2 / dof), p, p >= options.p_value)
+    return ScatterTest(chi2, dof, math.sqrt(chi2 / dof), p, p >= options.p_value,
+                       gross if trim else ())
 
 
 # --------------------------------------------------------------------------- all checks

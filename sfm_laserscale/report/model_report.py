@@ -103,7 +103,7 @@ def model_checks_dict(checks: ModelChecks | None, model_sigma: float) -> dict[st
     return {"method": checks.method,
             "scatter": None if sc is None else {"chi2": _num(sc.chi2), "dof": sc.dof,
                                                 "ratio": _num(sc.ratio), "p": _num(sc.p),
-                                                "ok": bool(sc.ok)},
+                                                "ok": bool(sc.ok), "gross": list(sc.gross)},
             "comparisons": [_comparison(c) for c in checks.comparisons],
             "lasers": [_laser(c) for c in checks.lasers],
             "distance": _trend(checks.distance),
