@@ -408,13 +408,22 @@ class _PipelineCommand(GreedyCommand):
     greedy = ("--laser-images",)
 
 
+def pipeline_inputs(func: Callable[..., Any]) -> Callable[..., Any]:
+    """The inputs every pipeline command (``colmap``, ``openmvg``) takes."""
+    for option in reversed((
+        click.option("--images", required=True, type=_path,
+                     help="The source images (laser images among them are held out of SfM)."),
+        click.option("--laser-images", required=True, multiple=True, type=_path,
+                     help="Laser image files and/or folders."),
+        click.option("--rig", required=True, type=_path, help="Laser rig TOML file."),
+        click.option("--out", required=True, type=_path, help="Output folder (created)."),
+    )):
+        func = option(func)
+    return func
+
+
 @main.command(cls=_PipelineCommand)
-@click.option("--images", required=True, type=_path,
-              help="The source images (laser images among them are held out of SfM).")
-@click.option("--laser-images", required=True, multiple=True, type=_path,
-              help="Laser image files and/or folders.")
-@click.option("--rig", required=True, type=_path, help="Laser rig TOML file.")
-@click.option("--out", required=True, type=_path, help="Output folder (created).")
+@pipeline_inputs
 @click.option("--mesh", type=_path, help="A mesh in the frame of the model built here (rare).")
 @click.option("--pairs", type=_path, help="Image pairs to match, 'name1 name2' per line.")
 @click.option("--spots", type=_path, help="CSV image,laser,x,y replacing detection.")
@@ -469,12 +478,7 @@ def _scale_options(kw: dict[str, Any]) -> Any:
 
 
 @main.command(cls=_PipelineCommand)
-@click.option("--images", required=True, type=_path,
-              help="The source images (laser images among them are held out of SfM).")
-@click.option("--laser-images", required=True, multiple=True, type=_path,
-              help="Laser image files and/or folders.")
-@click.option("--rig", required=True, type=_path, help="Laser rig TOML file.")
-@click.option("--out", required=True, type=_path, help="Output folder (created).")
+@pipeline_inputs
 @click.option("--intrinsics-k", help='Calibrated camera "fx;0;cx;0;fy;cy;0;0;1" (OpenMVG '
               "pixels: cx = cx_colmap - 0.5).")
 @click.option("--focal-px", type=float, help="Focal length in pixels.")
