@@ -11,7 +11,7 @@ import pytest
 from sfm_laserscale.detection import DetectionOptions, beam_polyline_px, detect_spots
 from sfm_laserscale.detection.beams import beam_samples, range_along_beam, scene_mask
 from sfm_laserscale.detection.joint import Option, choose, range_term
-from sfm_laserscale.detection.score import AddedLight, colour_evidence
+from sfm_laserscale.detection.score import UNMEASURED_UNCLIPPED, AddedLight, colour_evidence
 from sfm_laserscale.model import Camera
 from sfm_laserscale.report.overlays import draw_overlay, near_misses
 from sfm_laserscale.rig import Rig, rig_from_dict
@@ -86,6 +86,19 @@ def test_colour_evidence_against_scene_coloured_and_white_light(
     assert ev.measured == measured
     assert (ev.term < 0.3) if low else (ev.term == 1.0)
     assert colour_evidence(None, 1, 0.07).term == 1.0
+
+
+def test_unmeasured_colour_is_neutral_only_for_a_clipped_core() -> None:
+    """A clipped core's rim may be too thin or whitened to read: no evidence (1). An unclipped
+    blob whose added light is below the noise in every channel is not a laser's (an unclipped
+    spot adds measurable light in its channel): half the evidence. Measured on laser-free
+    physical frames, 4 of 5 false spots had an unmeasured colour (term 1 before)."""
+    faint = AddedLight(delta_rgb=np.array([0.00005, 0.0001, 0.0001]),
+                       scene_rgb=np.array([0.06, 0.30, 0.34]), noise=np.full(3, 0.001))
+    assert colour_evidence(faint, 1, 0.07, clipped=True).term == 1.0
+    assert colour_evidence(faint, 1, 0.07, clipped=False).term == UNMEASURED_UNCLIPPED == 0.5
+    assert colour_evidence(None, 1, 0.07, clipped=False).term == 0.5
+    assert not colour_evidence(None, 1, 0.07, clipped=False).measured
 
 
 def test_white_glint_on_the_beam_is_not_a_spot_and_the_reason_names_it() -> None:

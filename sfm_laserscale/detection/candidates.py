@@ -183,7 +183,8 @@ def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
     if options.colour_evidence:
         light = added_light(planes.channels, planes.clipped_laser, planes.clipped_any, x, y,
                             m.radius_px, m.support_px)
-        m.colour = colour_evidence(light, CHANNELS[m.color], options.colour_tau)
+        m.colour = colour_evidence(light, CHANNELS[m.color], options.colour_tau,
+                                   clipped=m.bright)
     else:
         m.colour = ColourEvidence(1.0)
     m.terms = {"contrast": contrast_term(m.snr, options.snr_half),

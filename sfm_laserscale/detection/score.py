@@ -9,8 +9,9 @@
   over its surroundings (:func:`added_light`) in the laser's channel is compared with what the
   scene's colour there explains (:func:`colour_evidence`): scene texture and pale clutter add
   light of the scene's colour, highlights and marine snow white light, a laser its own. 1 for
-  laser-coloured light or when the colour cannot be measured (a clipped core, whose edge the
-  camera's processing of highlights whitens), falling to ~0 for the scene's colour;
+  laser-coloured light or when a clipped core's colour cannot be measured (its edge the
+  camera's processing of highlights whitens), ½ when an unclipped blob's cannot, falling to ~0
+  for the scene's colour;
 - *beam*: ``exp(-½ (d / (band / 2))²)`` of the distance to the beam's image;
 - *depth*: DEPTH when laser light lies farther along the same beam (:mod:`.assign`).
 
@@ -41,6 +42,8 @@ RIM_WIDTH = 2.5
 SECTORS = 8
 #: laser-coloured share of the added light at which the colour term is ½
 MID_FRACTION = 0.25
+#: the colour term of an unclipped candidate whose colour cannot be measured
+UNMEASURED_UNCLIPPED = 0.5
 #: the scene's laser/other channel ratio used is at most this (a scene of nearly the laser's
 #: colour leaves the colour undecided rather than negative)
 MAX_SCENE_RATIO = 1.5
@@ -119,24 +122,28 @@ def added_light(channels: Channels, clipped_laser: NDArray[np.bool_],
                       scene_rgb=rgb[ring].mean(axis=0), noise=noise)
 
 
-def colour_evidence(light: AddedLight | None, channel: int, tau: float) -> ColourEvidence:
+def colour_evidence(light: AddedLight | None, channel: int, tau: float,
+                    clipped: bool = True) -> ColourEvidence:
     """The colour term of a candidate for a laser brightest in ``channel`` (0, 1, 2).
 
     ``fraction = max(0, Δlaser − max(k, 1)·Δother) / Δlaser``: Δ the added light, other the
     brighter of the two other channels, k the scene's laser/other ratio. Light of the scene's own
     colour (texture, pale clutter) and white light (the lamps' colour: glints, marine snow) give
     ≤ 0, a laser ~0.3–1 (however the camera renders its crosstalk). Not measurable: 1 (no
-    evidence either way).
+    evidence either way) where the laser channel ``clipped`` (a clipped core's rim is often too
+    thin or whitened by the camera), UNMEASURED_UNCLIPPED where it did not: an unclipped laser
+    spot adds measurable light in its channel, a blob that does not is as likely the scene's.
     """
+    unmeasured = ColourEvidence(1.0 if clipped else UNMEASURED_UNCLIPPED)
     if light is None:
-        return ColourEvidence(1.0)
+        return unmeasured
     others = [k for k in range(3) if k != channel]
     d_laser = float(light.delta_rgb[channel])
     k_other = max(others, key=lambda k: float(light.delta_rgb[k]))
     d_other = float(light.delta_rgb[k_other])
     if d_laser < MIN_COLOUR_SNR * float(light.noise[channel]):
         if d_other < MIN_COLOUR_SNR * float(light.noise[k_other]):
-            return ColourEvidence(1.0)
+            return unmeasured
         return ColourEvidence(_against(0.0, tau), 0.0, True)
     ratio = float(light.scene_rgb[channel]) / max(float(light.scene_rgb[k_other]), 1e-6)
     # beyond the scene's colour and beyond white (the lamps' own colour: glints, snow)
