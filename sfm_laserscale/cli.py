@@ -408,6 +408,19 @@ class _PipelineCommand(GreedyCommand):
     greedy = ("--laser-images",)
 
 
+def pipeline_run_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """How every pipeline command (``colmap``, ``openmvg``) runs its ``scale`` and writes."""
+    for option in reversed((
+        click.option("--method", type=click.Choice(["fcm", "pcm", "all"]), default="all",
+                     show_default=True),
+        click.option("--seed", type=int, default=0, show_default=True),
+        click.option("--workers", type=click.IntRange(min=0), help=_WORKERS_HELP),
+        click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder."),
+    )):
+        func = option(func)
+    return func
+
+
 def pipeline_inputs(func: Callable[..., Any]) -> Callable[..., Any]:
     """The inputs every pipeline command (``colmap``, ``openmvg``) takes."""
     for option in reversed((
@@ -437,11 +450,7 @@ def pipeline_inputs(func: Callable[..., Any]) -> Callable[..., Any]:
 @click.option("--sift-first-octave", type=int, default=-1, show_default=True)
 @click.option("--mesh-method", type=click.Choice(["delaunay25d", "poisson"]),
               default="delaunay25d", show_default=True)
-@click.option("--method", type=click.Choice(["fcm", "pcm", "all"]), default="all",
-              show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--workers", type=click.IntRange(min=0), help=_WORKERS_HELP)
-@click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
+@pipeline_run_options
 @common_options
 def colmap(**kw: Any) -> int:
     """COLMAP SfM (laser images held out), a coarse mesh when none is given, then scale."""
@@ -486,11 +495,7 @@ def _scale_options(kw: dict[str, Any]) -> Any:
 @click.option("--openmvg-bin", type=_path, help="Folder of the OpenMVG tools [the PATH].")
 @click.option("--openmvs-bin", type=_path, help="Folder of the OpenMVS tools [the PATH].")
 @click.option("--spots", type=_path, help="CSV image,laser,x,y replacing detection.")
-@click.option("--method", type=click.Choice(["fcm", "pcm", "all"]), default="all",
-              show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--workers", type=click.IntRange(min=0), help=_WORKERS_HELP)
-@click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
+@pipeline_run_options
 @common_options
 def openmvg(**kw: Any) -> int:
     """OpenMVG SfM and OpenMVS mesh (laser images held out), scale, then TransformScene."""

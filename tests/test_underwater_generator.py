@@ -244,21 +244,24 @@ def test_same_seed_same_image() -> None:
     assert not np.array_equal(a.image_rgb, c.image_rgb)
 
 
+def imported_modules(path: Path) -> list[str]:
+    """Every module a Python file imports (``import a.b``, ``from a.b import c``)."""
+    mods: list[str] = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module:
+            mods.append(node.module)
+        elif isinstance(node, ast.Import):
+            mods += [a.name for a in node.names]
+    return mods
+
+
 def test_generator_imports_nothing_from_the_rest_of_the_package() -> None:
     allowed = {"numpy", "scipy", "cv2", "math", "dataclasses", "collections", "typing",
                "__future__"}
     for path in PACKAGE.glob("*.py"):
         if path.name == "survey.py":  # SfM and writers only: tests/test_underwater_survey.py
             continue
-        tree = ast.parse(path.read_text())
-        for node in ast.walk(tree):
-            if isinstance(node, ast.ImportFrom) and node.module:
-                mods = [node.module]
-            elif isinstance(node, ast.Import):
-                mods = [a.name for a in node.names]
-            else:
-                continue
-            for mod in mods:
-                ok = (mod.split(".")[0] in allowed
-                      or mod.startswith("sfm_laserscale.synthetic.underwater"))
-                assert ok, f"{path.name} imports {mod}"
+        for mod in imported_modules(path):
+            ok = (mod.split(".")[0] in allowed
+                  or mod.startswith("sfm_laserscale.synthetic.underwater"))
+            assert ok, f"{path.name} imports {mod}"

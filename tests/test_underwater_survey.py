@@ -14,7 +14,6 @@ which would hide what this test is about: the photographs.
 
 from __future__ import annotations
 
-import ast
 import json
 import math
 from pathlib import Path
@@ -72,16 +71,10 @@ def _spot_summary(report: dict[str, Any], truth: dict[str, Any]) -> str:
 
 
 def test_survey_uses_none_of_the_stages_under_test() -> None:
-    tree = ast.parse(SURVEY_PY.read_text())
-    for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom) and node.module:
-            mods = [node.module]
-        elif isinstance(node, ast.Import):
-            mods = [a.name for a in node.names]
-        else:
-            continue
-        for mod in mods:
-            assert not mod.startswith(FORBIDDEN), f"survey.py imports {mod}"
+    from tests.test_underwater_generator import imported_modules
+
+    for mod in imported_modules(SURVEY_PY):
+        assert not mod.startswith(FORBIDDEN), f"survey.py imports {mod}"
 
 
 def test_sfm_registers_every_reference_image(survey: Survey) -> None:
