@@ -68,6 +68,27 @@ def test_range_term_prefers_agreeing_ranges_but_keeps_a_floor() -> None:
     assert list(both) == ["A"]
 
 
+def test_whitened_clipped_core_taken_only_at_the_other_spots_range() -> None:
+    # B's and C's best are whitened clipped cores (score 0.05, 0.6 without the colour against
+    # them); A is a laser-coloured spot at 3 m
+    def opts(b_range: float, c_range: float) -> dict[str, list[Option]]:
+        return {"A": [Option(0, 0.8, 3.0)], "B": [Option(1, 0.05, b_range, rescue=0.6)],
+                "C": [Option(2, 0.05, c_range, rescue=0.6)]}
+
+    chosen = choose(opts(3.2, 6.0), 0.25)
+    assert {n: (o.index, o.rescued) for n, o in chosen.items()} == {"A": (0, False),
+                                                                    "B": (1, True)}
+    assert set(choose(opts(4.0, 2.0), 0.25)) == {"A"}  # glints anywhere along their bands
+    # no laser-coloured spot: three whitened cores at one range are the lasers', two are not
+    three = {"B": [Option(1, 0.05, 3.0, rescue=0.6)], "C": [Option(2, 0.05, 3.1, rescue=0.6)],
+             "D": [Option(3, 0.05, 2.9, rescue=0.6), Option(4, 0.05, 7.0, rescue=0.9)]}
+    assert {n: o.index for n, o in choose(three, 0.25).items()} == {"B": 1, "C": 2, "D": 3}
+    assert choose({n: three[n] for n in ("B", "D")}, 0.25) == {}
+    # a rescue below min_score is never taken
+    assert set(choose({"A": [Option(0, 0.8, 3.0)], "B": [Option(1, 0.05, 3.0, rescue=0.2)]},
+                      0.25)) == {"A"}
+
+
 @pytest.mark.parametrize(
     ("delta", "measured", "low"),
     [
@@ -160,3 +181,21 @@ def test_overlay_draws_the_near_misses_of_a_laser_without_spot() -> None:
     marked = draw_overlay(rgb, CAMERA, rig, res.spots, {}, None, 0.5, 10.0,
                           near_misses=misses)
     assert plain.shape == marked.shape and np.count_nonzero(plain != marked) > 100
+
+
+def test_snr_is_measured_against_local_noise_not_the_scene_shading() -> None:
+    # the same spot on a flat scene and on a strobe's hot spot (a broad bright bump): its SNR
+    # is the spot over the noise around it in both
+    from sfm_laserscale.detection.shape import shape_and_contrast
+
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[0:200, 0:200] + 0.5
+    spot = 0.4 * np.exp(-0.5 * ((xx - 100.0) ** 2 + (yy - 100.0) ** 2) / 1.2**2)
+    noise = rng.normal(0.0, 0.01, spot.shape)
+    hot = 0.5 * np.exp(-0.5 * ((xx - 160.0) ** 2 + (yy - 60.0) ** 2) / 40.0**2)
+    flat = shape_and_contrast((0.2 + spot + noise).astype(np.float32), 100, 100, 33.0, 0.5)
+    shaded = shape_and_contrast((0.2 + hot + spot + noise).astype(np.float32), 100, 100, 33.0,
+                                0.5)
+    assert flat.rejection is None and shaded.rejection is None
+    assert flat.snr > 20
+    assert shaded.snr > 0.7 * flat.snr

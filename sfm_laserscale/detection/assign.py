@@ -19,7 +19,13 @@ from numpy.typing import NDArray
 
 from sfm_laserscale.detection.beams import SearchRegion, distance_to_polyline, range_along_beam
 from sfm_laserscale.detection.candidates import Measure
-from sfm_laserscale.detection.joint import MAX_OPTIONS, choose, laser_options, range_term
+from sfm_laserscale.detection.joint import (
+    CLIPPED_COLOUR,
+    MAX_OPTIONS,
+    choose,
+    laser_options,
+    range_term,
+)
 from sfm_laserscale.detection.options import DetectionOptions
 from sfm_laserscale.detection.score import describe_weakest
 from sfm_laserscale.rig import Rig
@@ -143,8 +149,12 @@ def assign_calibrated(
         m = valid[o.index]
         beam = float(beam_term(dist[li, o.index : o.index + 1], region.band_px)[0])
         m.evidence = evidence(m, beam, name)
-        m.score = float(np.prod(list(m.evidence.values())))
         m.laser, m.reason = name, f"assigned to {name}"
+        if o.rescued:
+            m.evidence["colour"] = CLIPPED_COLOUR
+            m.reason += (": a clipped core whose colour cannot be read, at the range of the "
+                         "other lasers' spots")
+        m.score = float(np.prod(list(m.evidence.values())))
         chosen[name] = o.index
     for name, ranked in opts.items():
         for o in ranked:

@@ -49,6 +49,9 @@ from sfm_laserscale.detection.score import (
 from sfm_laserscale.detection.shape import TOO_LARGE, Blob, shape_and_contrast
 
 F32 = NDArray[np.float32]
+#: half-maximum radius (px) up to which a clipped core's rim is within the reach of demosaicing
+#: and 4:2:0 chroma, so its colour may read whitened (:mod:`.joint`)
+WHITENED_MAX_RADIUS = 3.0
 
 
 @dataclass
@@ -66,6 +69,7 @@ class Measure:
     roundness: float = 0.0
     support_px: float = 0.0
     bright: bool = False  # refined on the brightness signal (its laser channel clips)
+    whitened: bool = False  # a small clipped core whose colour read against it
     sigma_px: float = 1.0
     colour: ColourEvidence = field(default_factory=lambda: ColourEvidence(0.5))
     terms: dict[str, float] = field(default_factory=dict)  # evidence without colour and beam
@@ -185,6 +189,8 @@ def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
                             m.radius_px, m.support_px)
         m.colour = colour_evidence(light, CHANNELS[m.color], options.colour_tau,
                                    clipped=m.bright)
+        m.whitened = (m.bright and m.colour.measured and m.colour.term < 0.5
+                      and m.radius_px <= WHITENED_MAX_RADIUS)
     else:
         m.colour = ColourEvidence(1.0)
     m.terms = {"contrast": contrast_term(m.snr, options.snr_half),

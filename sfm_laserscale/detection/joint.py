@@ -10,12 +10,21 @@ RANGE_SIGMA_LN)²)``, r_ref the median range of the other lasers' best candidate
 reaching ``min_score`` on their own): the floor keeps a strong spot on a step of the relief (a
 scarp, a coral head) that disagrees with the others. A laser takes its best candidate by score ×
 range term when that reaches ``min_score``.
+
+A small clipped core's colour is often not readable at all: demosaicing, 4:2:0 chroma and the
+white balance whiten its rim, so it reads like a glint (``Measure.whitened``: half-maximum radius
+at most ``candidates.WHITENED_MAX_RADIUS``; a larger glint shows its own colour). Such a
+candidate keeps its colour term against it unless its range agrees within RESCUE_RANGE_LN with
+the lasers chosen on their own evidence: then its colour term is CLIPPED_COLOUR instead
+(``Option.rescue``) and it is taken when that reaches ``min_score``; with none chosen, when at
+least MUTUAL_LASERS such cores agree with each other. A glint sits anywhere along a band; a
+laser's spot sits at the range of the other spots.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,15 +41,25 @@ RANGE_SIGMA_LN = 0.4
 RANGE_FLOOR = 0.35
 #: candidates scoring below this are not considered at all
 MIN_CONSIDERED = 0.02
+#: colour term of a clipped core whose colour reads whitened, when its range agrees
+CLIPPED_COLOUR = 1.0
+#: … agrees: |ln(range / median range of the lasers chosen on their own)| at most this
+RESCUE_RANGE_LN = 0.15
+#: … or, with no laser chosen on its own, when this many such cores agree with each other
+MUTUAL_LASERS = 3
 
 
 @dataclass(frozen=True)
 class Option:
-    """A candidate for a laser: its index in ``valid``, its score and its range (m)."""
+    """A candidate for a laser: its index in ``valid``, its score, its range (m) and its score
+    with CLIPPED_COLOUR for colour (``rescue``, 0 unless a clipped core's colour read against
+    it); ``rescued`` when chosen that way."""
 
     index: int
     score: float
     range_m: float
+    rescue: float = 0.0
+    rescued: bool = False
 
 
 def range_term(range_m: float, others_m: list[float]) -> float:
@@ -59,7 +78,15 @@ def laser_options(name: str, scores: F64, region: SearchRegion, valid: list[Meas
         return []
     xy = np.array([[valid[j].x, valid[j].y] for j in order])
     ranges = range_along_beam(xy, region.polylines[name], region.ranges[name])
-    return [Option(j, float(scores[j]), float(r)) for j, r in zip(order, ranges, strict=True)]
+    return [Option(j, float(scores[j]), float(r), _rescue(valid[j], float(scores[j])))
+            for j, r in zip(order, ranges, strict=True)]
+
+
+def _rescue(m: Measure, score: float) -> float:
+    """A clipped core's score with CLIPPED_COLOUR for its colour, if its colour read lower."""
+    if not (m.whitened and 0.0 < m.colour.term < CLIPPED_COLOUR):
+        return 0.0
+    return score / m.colour.term * CLIPPED_COLOUR
 
 
 def choose(options: dict[str, list[Option]], min_score: float) -> dict[str, Option]:
@@ -78,4 +105,49 @@ def choose(options: dict[str, list[Option]], min_score: float) -> dict[str, Opti
     for name, (o, _) in sorted(picked.items(), key=lambda kv: -kv[1][1]):
         if all(c.index != o.index for c in chosen.values()):
             chosen[name] = o
-    return chosen
+    return {**chosen, **rescued(options, chosen, min_score)}
+
+
+def rescued(options: dict[str, list[Option]], chosen: dict[str, Option], min_score: float
+            ) -> dict[str, Option]:
+    """Lasers without a spot that take a clipped core of whitened colour at the range of the
+    spots ``chosen`` on their own evidence (see the module docstring)."""
+    if not chosen:
+        return _mutual(options, min_score)
+    ref = float(np.median([o.range_m for o in chosen.values()]))
+    taken = {o.index for o in chosen.values()}
+    out: dict[str, Option] = {}
+    for name, opts in options.items():
+        if name in chosen:
+            continue
+        fits = [o for o in opts if o.rescue >= min_score and o.index not in taken
+                and _agrees(o.range_m, ref)]
+        if fits:
+            best = max(fits, key=lambda o: o.rescue)
+            out[name] = replace(best, rescued=True)
+            taken.add(best.index)
+    return out
+
+
+def _agrees(range_m: float, ref_m: float) -> bool:
+    """Whether a range lies within RESCUE_RANGE_LN (log ratio) of a reference range."""
+    return math.isfinite(range_m) and abs(math.log(range_m / ref_m)) <= RESCUE_RANGE_LN
+
+
+def _mutual(options: dict[str, list[Option]], min_score: float) -> dict[str, Option]:
+    """With no laser chosen on its own evidence: clipped cores of at least MUTUAL_LASERS lasers
+    whose ranges agree with each other."""
+    pool = [(n, o) for n, opts in options.items() for o in opts
+            if o.rescue >= min_score and math.isfinite(o.range_m)]
+    best: dict[str, Option] = {}
+    for _, ref in pool:
+        group: dict[str, Option] = {}
+        for n, o in sorted(pool, key=lambda no: -no[1].rescue):
+            if (n not in group and _agrees(o.range_m, ref.range_m)
+                    and all(g.index != o.index for g in group.values())):
+                group[n] = o
+        if len(group) > len(best):
+            best = group
+    if len(best) < MUTUAL_LASERS:
+        return {}
+    return {n: replace(o, rescued=True) for n, o in best.items()}

@@ -3,8 +3,9 @@
 Around a local maximum: the background is the median of an outer ring, the contrast the peak
 above it; the half-maximum region (connected, holding the maximum) gives the radius
 ``sqrt(area / pi)`` and the roundness; the noise is the robust std of a ring just outside the
-blob, so SNR = contrast / noise; the support is where the blob's azimuthal mean falls to 5 %
-of its contrast; a blob whose surroundings respond almost as strongly is not compact.
+blob about a plane fitted to it, so SNR = contrast / noise; the support is where the blob's
+azimuthal mean falls to 5 % of its contrast; a blob whose surroundings respond almost as
+strongly is not compact.
 """
 
 from __future__ import annotations
@@ -80,6 +81,17 @@ def _support_radius(excess: F32, rr: F64, contrast: float, radius: float, limit:
     return float(max(start, min(len(profile), int(limit)) - 1))
 
 
+def _ring_noise(patch: F32, gx: F64, gy: F64, in_ring: NDArray[np.bool_]) -> float:
+    """Robust std of a ring's values about a plane fitted to them: the scene's shading across
+    the ring (a strobe's hot spot, a lit slope) is no noise a spot has to stand above."""
+    if in_ring.sum() < 4:
+        return 0.0
+    design = np.column_stack([np.ones(in_ring.sum()), gx[in_ring], gy[in_ring]])
+    values = patch[in_ring].astype(np.float64)
+    coef, *_ = np.linalg.lstsq(design, values, rcond=None)
+    return robust_std(values - design @ coef)
+
+
 def shape_and_contrast(
     resp: F32, row: int, col: int, max_radius: float, max_annulus_ratio: float
 ) -> Blob:
@@ -104,8 +116,9 @@ def shape_and_contrast(
     if touches or radius > max_radius:
         return Blob(radius, roundness, contrast, 0.0, 0.0,
                      f"{TOO_LARGE} (half-max radius > {max_radius:.1f} px)")
-    ring = patch[(rr >= 2.0 * radius + 2.0) & (rr <= 2.0 * radius + 5.0)]
-    noise = max(robust_std(ring - bg), robust_std(outer), 0.5 / 255.0)
+    in_ring = (rr >= 2.0 * radius + 2.0) & (rr <= 2.0 * radius + 5.0)
+    ring = patch[in_ring]
+    noise = max(_ring_noise(patch, gx, gy, in_ring), 0.5 / 255.0)
     snr = contrast / noise
     support = _support_radius(patch - bg, rr, contrast, radius, big - 4)
     ratio = float(np.percentile(ring - bg, 75)) / contrast if ring.size else 0.0
