@@ -254,7 +254,7 @@ def separate_overlapping(planes: Planes, valid: list[Measure], options: Detectio
             o = valid[j]
             for i in nbs:
                 others = tuple(models[(k, j)] for k in groups[j] if (k, j) in models)
-                p = spot_patch(planes, o.guess(), support[j], others)
+                p = spot_patch(planes, o.guess(), support[j], others, allow_luma=False)
                 if p is not None:
                     fresh[(j, i)] = neighbour_model(p, o.x, o.y, (valid[i].x, valid[i].y))
         models = fresh
