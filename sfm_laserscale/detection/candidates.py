@@ -1,13 +1,14 @@
 """Candidates of one laser colour: local maxima of its responses, measured, refined and scored.
 
-For each response (:mod:`.response`: the colour response, and the brightness response where the
-laser channel clips) the local maxima of its multi-scale DoG above a noise-relative threshold
-are taken strongest first. Maxima outside every beam band, below ``min_clutter_ratio`` × the
-scene's clutter level, beyond ``max_candidates`` or repeating a stronger candidate are listed
-with that reason and not measured. The others are measured (:mod:`.shape`), refined
-(:mod:`.refine`) and get their evidence (:mod:`.score`); hard tests (no contrast, too large,
-not compact, weak, refinement failed) reject a candidate with a reason, everything else is
-evidence in its score. Overlapping spots are refined again with each other's light removed.
+For each response (:mod:`.response`: the colour response, and the brightness response in the
+bands of a luma-dominant (green) laser or where the laser channel clips) the local maxima of
+its multi-scale DoG above a noise-relative threshold are taken strongest first. Maxima outside
+every beam band, below ``min_clutter_ratio`` × the scene's clutter level, beyond
+``max_candidates`` or repeating a stronger candidate are listed with that reason and not
+measured. The others are measured (:mod:`.shape`), refined (:mod:`.refine`) and get their
+evidence (:mod:`.score`); hard tests (no contrast, too large, not compact, weak, refinement
+failed) reject a candidate with a reason, everything else is evidence in its score.
+Overlapping spots are refined again with each other's light removed.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from sfm_laserscale.detection.options import DetectionOptions
 from sfm_laserscale.detection.refine import (
     NeighbourModel,
     SpotGuess,
+    luma_dominant,
     neighbour_model,
     refine_spot,
     spot_patch,
@@ -112,9 +114,14 @@ def _source(name: str, plane: F32, options: DetectionOptions, scene: NDArray[np.
 
 def _sources(channels: Channels, planes: Planes, options: DetectionOptions,
              region: SearchRegion) -> list[_Source]:
-    """The colour response, and the brightness response where the laser channel clips."""
+    """The colour response, and the brightness response: in every band for a laser whose light
+    is mostly luma (green: in green water its colour response is weak, its brightness is not),
+    else where the laser channel clips."""
     scene = scene_mask(region)
     out = [_source("colour", planes.resp, options, scene)]
+    if luma_dominant(planes.laser_rgb):
+        out.append(_source("bright", brightness(channels), options, scene, None))
+        return out
     clipped = planes.clipped_laser if region.near is None else planes.clipped_laser & region.near
     if clipped.any():
         near_clip = cv2.dilate(clipped.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0

@@ -108,7 +108,8 @@ class Candidate:
 
     ``x``/``y``: refined centre (COLMAP convention). ``color``: the channel searched.
     ``source``: the response it came from, "colour" (the laser's colour over the background) or
-    "bright" (a compact bright blob whose laser channel clips, whatever its hue).
+    "bright" (a compact bright blob, whatever its hue, in a green laser's band or where the
+    laser channel clips).
     ``response``: its blob (DoG) value; ``clutter_ratio``: that value in clutter levels of the
     scene (:func:`~sfm_laserscale.detection.response.clutter_level`). ``score``: the product
     of the evidence terms in ``evidence`` (name -> value in 0–1: contrast, roundness, clutter,
