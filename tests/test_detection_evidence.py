@@ -79,11 +79,11 @@ def test_whitened_clipped_core_taken_only_at_the_other_spots_range() -> None:
     assert {n: (o.index, o.rescued) for n, o in chosen.items()} == {"A": (0, False),
                                                                     "B": (1, True)}
     assert set(choose(opts(4.0, 2.0), 0.25)) == {"A"}  # glints anywhere along their bands
-    # no laser-coloured spot: three whitened cores at one range are the lasers', two are not
+    # no laser-coloured spot: whitened cores agreeing only with each other are not taken (in
+    # laser-free 4000 × 3000 frames the bands' glints agree so in most frames)
     three = {"B": [Option(1, 0.05, 3.0, rescue=0.6)], "C": [Option(2, 0.05, 3.1, rescue=0.6)],
              "D": [Option(3, 0.05, 2.9, rescue=0.6), Option(4, 0.05, 7.0, rescue=0.9)]}
-    assert {n: o.index for n, o in choose(three, 0.25).items()} == {"B": 1, "C": 2, "D": 3}
-    assert choose({n: three[n] for n in ("B", "D")}, 0.25) == {}
+    assert choose(three, 0.25) == {}
     # a rescue below min_score is never taken
     assert set(choose({"A": [Option(0, 0.8, 3.0)], "B": [Option(1, 0.05, 3.0, rescue=0.2)]},
                       0.25)) == {"A"}

@@ -16,9 +16,10 @@ white balance whiten its rim, so it reads like a glint (``Measure.whitened``: ha
 at most ``candidates.WHITENED_MAX_RADIUS``; a larger glint shows its own colour). Such a
 candidate keeps its colour term against it unless its range agrees within RESCUE_RANGE_LN with
 the lasers chosen on their own evidence: then its colour term is CLIPPED_COLOUR instead
-(``Option.rescue``) and it is taken when that reaches ``min_score``; with none chosen, when at
-least MUTUAL_LASERS such cores agree with each other. A glint sits anywhere along a band; a
-laser's spot sits at the range of the other spots.
+(``Option.rescue``) and it is taken when that reaches ``min_score``. A glint sits anywhere along
+a band; a laser's spot sits at the range of the other spots. (Whitened cores agreeing only with
+each other are not taken: at 4000 × 3000 the bands hold enough glints that three or four of
+them agree within 15 % in most laser-free frames.)
 """
 
 from __future__ import annotations
@@ -45,8 +46,6 @@ MIN_CONSIDERED = 0.02
 CLIPPED_COLOUR = 1.0
 #: … agrees: |ln(range / median range of the lasers chosen on their own)| at most this
 RESCUE_RANGE_LN = 0.15
-#: … or, with no laser chosen on its own, when this many such cores agree with each other
-MUTUAL_LASERS = 3
 
 
 @dataclass(frozen=True)
@@ -113,7 +112,7 @@ def rescued(options: dict[str, list[Option]], chosen: dict[str, Option], min_sco
     """Lasers without a spot that take a clipped core of whitened colour at the range of the
     spots ``chosen`` on their own evidence (see the module docstring)."""
     if not chosen:
-        return _mutual(options, min_score)
+        return {}
     ref = float(np.median([o.range_m for o in chosen.values()]))
     taken = {o.index for o in chosen.values()}
     out: dict[str, Option] = {}
@@ -132,22 +131,3 @@ def rescued(options: dict[str, list[Option]], chosen: dict[str, Option], min_sco
 def _agrees(range_m: float, ref_m: float) -> bool:
     """Whether a range lies within RESCUE_RANGE_LN (log ratio) of a reference range."""
     return math.isfinite(range_m) and abs(math.log(range_m / ref_m)) <= RESCUE_RANGE_LN
-
-
-def _mutual(options: dict[str, list[Option]], min_score: float) -> dict[str, Option]:
-    """With no laser chosen on its own evidence: clipped cores of at least MUTUAL_LASERS lasers
-    whose ranges agree with each other."""
-    pool = [(n, o) for n, opts in options.items() for o in opts
-            if o.rescue >= min_score and math.isfinite(o.range_m)]
-    best: dict[str, Option] = {}
-    for _, ref in pool:
-        group: dict[str, Option] = {}
-        for n, o in sorted(pool, key=lambda no: -no[1].rescue):
-            if (n not in group and _agrees(o.range_m, ref.range_m)
-                    and all(g.index != o.index for g in group.values())):
-                group[n] = o
-        if len(group) > len(best):
-            best = group
-    if len(best) < MUTUAL_LASERS:
-        return {}
-    return {n: replace(o, rescued=True) for n, o in best.items()}
