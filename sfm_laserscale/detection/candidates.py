@@ -52,8 +52,10 @@ from sfm_laserscale.detection.shape import TOO_LARGE, Blob, shape_and_contrast
 
 F32 = NDArray[np.float32]
 #: half-maximum radius (px) up to which a clipped core's rim is within the reach of demosaicing
-#: and 4:2:0 chroma, so its colour may read whitened (:mod:`.joint`)
+#: and 4:2:0 chroma, so its colour may read whitened (:mod:`.joint`) …
 WHITENED_MAX_RADIUS = 3.0
+#: … when its colour term is below this
+WHITENED_MAX_COLOUR = 0.5
 
 
 @dataclass
@@ -196,7 +198,7 @@ def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
                             m.radius_px, m.support_px)
         m.colour = colour_evidence(light, CHANNELS[m.color], options.colour_tau,
                                    clipped=m.bright)
-        m.whitened = (m.bright and m.colour.measured and m.colour.term < 0.5
+        m.whitened = (m.bright and m.colour.measured and m.colour.term < WHITENED_MAX_COLOUR
                       and m.radius_px <= WHITENED_MAX_RADIUS)
     else:
         m.colour = ColourEvidence(1.0)

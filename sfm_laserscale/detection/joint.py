@@ -82,8 +82,8 @@ def laser_options(name: str, scores: F64, region: SearchRegion, valid: list[Meas
 
 
 def _rescue(m: Measure, score: float) -> float:
-    """A clipped core's score with CLIPPED_COLOUR for its colour, if its colour read lower."""
-    if not (m.whitened and 0.0 < m.colour.term < CLIPPED_COLOUR):
+    """A whitened clipped core's score with CLIPPED_COLOUR for its colour term (0 otherwise)."""
+    if not (m.whitened and m.colour.term > 0.0):
         return 0.0
     return score / m.colour.term * CLIPPED_COLOUR
 

@@ -4,12 +4,14 @@ A spot is refined on a signal free of background, in a window around its candida
 minus a plane fitted on a ring outside the spot's support:
 
 - a laser whose light is mostly luma (green: :func:`luma_dominant`): the luma of the linear
-  channels. Camera JPEGs keep luma at full resolution and colour at half (4:2:0), so any signal
-  that separates the laser from the texture by colour moves a small spot's centre by the 2×2
-  chroma blocks (measured: 0.35 → 0.2 px median on green spots, docs/DETECTION.md);
-- any other laser (red, blue): the channels projected on the part of the laser's colour
-  orthogonal to the scene texture's colour (:func:`spot_light`), so the texture cancels; its
-  luma share is too small for luma to see it above the texture.
+  channels, when the spot's SNR there is at least LUMA_SNR_RATIO of the texture-free signal's
+  (below). Camera JPEGs keep luma at full resolution and colour at half (4:2:0), so a signal
+  that separates the laser from the texture by colour moves a small spot's centre with the
+  2 × 2 chroma blocks; where the texture is strong in luma (green water) the texture-free
+  signal is kept;
+- otherwise (red and blue lasers, whose luma share is too small to see them above the
+  texture): the channels projected on the part of the laser's colour orthogonal to the scene
+  texture's colour (:func:`spot_light`), so the texture cancels.
 
 Pixels where the signal is undetermined (clipped) inside the support are set to the highest
 determined value there (a flat top). The centre is a Gaussian-windowed centroid iterated to its
@@ -131,10 +133,8 @@ MAX_SUBSET_GAIN = 16.0
 
 #: luma weights (ITU-R BT.601, as JPEG's YCbCr)
 LUMA = np.array([0.299, 0.587, 0.114])
-#: a laser whose luma is at least this share of its brightest channel is refined on luma
+#: a laser whose luma is at least this share of its brightest channel is refined on luma …
 MIN_LUMA_SHARE = 0.5
-
-
 #: … when its SNR is at least this share of the texture-free signal's
 LUMA_SNR_RATIO = 0.5
 

@@ -83,7 +83,10 @@ def _support_radius(excess: F32, rr: F64, contrast: float, radius: float, limit:
 
 def _ring_noise(patch: F32, gx: F64, gy: F64, in_ring: NDArray[np.bool_]) -> float:
     """Robust std of a ring's values about a plane fitted to them: the scene's shading across
-    the ring (a strobe's hot spot, a lit slope) is no noise a spot has to stand above."""
+    the ring (a strobe's hot spot, a lit slope) is no noise a spot has to stand above. A plain
+    least-squares plane, not ``refine._plane_residual``'s 3-sigma-trimmed one: trimming drops
+    the ring's clutter from the fit and lifts clutter blobs' SNR too (measured on the physical
+    benchmark's frames: 5 spots fewer and 2 false more in 1000)."""
     if in_ring.sum() < 4:
         return 0.0
     design = np.column_stack([np.ones(in_ring.sum()), gx[in_ring], gy[in_ring]])
