@@ -91,7 +91,8 @@ def score_frame(frame: Frame, result: Any) -> dict[str, Any]:
             err = math.hypot(spot.x - truth[0], spot.y - truth[1]) if truth else math.inf
             if err <= MATCH_PX and not any(f["laser"] == laser for f in found):
                 found.append({"laser": laser, "error_px": err, "dx": spot.x - truth[0],
-                              "dy": spot.y - truth[1], "score": spot.score})
+                              "dy": spot.y - truth[1], "score": spot.score,
+                              "sigma_px": spot.sigma_px})
                 continue
             near = min((math.hypot(spot.x - t[0], spot.y - t[1]) for t in truths.values()),
                        default=math.inf)
@@ -164,6 +165,7 @@ def summarise(records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
             "false_per_image": n_false / len(recs),
             "median_px": _percentile(errs, 50), "p95_px": _percentile(errs, 95),
             "max_px": max(errs) if errs else None,
+            "within_2sigma_pct": _within(recs, 1.96), "within_3sigma_pct": _within(recs, 3.0),
             "detect_s_per_image": float(np.mean([r["detect_s"] for r in recs])),
             "render_s_per_image": float(np.mean([r["render_s"] for r in recs])),
             "miss_reasons": reasons.most_common(),
@@ -171,6 +173,13 @@ def summarise(records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
             "falses": [{"image": r["index"], **f} for r in recs for f in r["falses"]],
         })
     return rows
+
+
+def _within(recs: list[dict[str, Any]], k: float) -> float | None:
+    """Share (%) of the found spots' per-axis errors within k of their stated sigma."""
+    z = [abs(d) / f["sigma_px"] for r in recs for f in r["found"] if f.get("sigma_px")
+         for d in (f["dx"], f["dy"])]
+    return 100.0 * float(np.mean(np.array(z) <= k)) if z else None
 
 
 def _reason_kind(reason: str) -> str:
@@ -223,8 +232,8 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
     head = (f"| condition | size | images | spots | found % (≥ {TARGETS['found_pct']:g}) | "
             f"false % (≤ {TARGETS['false_pct']:g}) | false/img | median px "
             f"(≤ {TARGETS['median_px']:g}) | p95 px (≤ {TARGETS['p95_px']:g}) | max px | "
-            "det s/img | render s/img | most common miss reason |")
-    lines = [head, "|" + "---|" * 13]
+            "within 2σ / 3σ % | det s/img | render s/img | most common miss reason |")
+    lines = [head, "|" + "---|" * 14]
     for r in rows:
         reason = f"{r['miss_reasons'][0][1]}× {r['miss_reasons'][0][0]}" if r["miss_reasons"] \
             else ""
@@ -233,6 +242,7 @@ def markdown_table(rows: Sequence[dict[str, Any]]) -> str:
             f"{_fmt(r['found_pct'], 1)} | {_fmt(r['false_pct'], 1)} | "
             f"{_fmt(r['false_per_image'])} | {_fmt(r['median_px'], 3)} | "
             f"{_fmt(r['p95_px'], 3)} | {_fmt(r['max_px'], 2)} | "
+            f"{_fmt(r.get('within_2sigma_pct'), 0)} / {_fmt(r.get('within_3sigma_pct'), 0)} | "
             f"{_fmt(r['detect_s_per_image'])} | {_fmt(r['render_s_per_image'])} | "
             f"{reason.replace('|', '/')} |")
     return "\n".join(lines)

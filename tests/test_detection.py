@@ -242,7 +242,8 @@ def test_weaker_spots_get_larger_sigma() -> None:
         for xy in truth.values():
             paint_spot(img, (float(xy[0]), float(xy[1])), "red", sigma_px=2.0, peak=peak)
         img += rng.normal(0, noise, img.shape).astype(np.float32)
-        res = detect_spots(to_uint8(img), PINHOLE, rig, DetectionOptions(sigma_floor_px=0.0))
+        res = detect_spots(to_uint8(img), PINHOLE, rig, DetectionOptions(
+            sigma_floor_px=0.0, sigma_window_gain=0.0, sigma_asymmetry_gain=0.0))
         assert len(res.spots) == 4
         return float(np.mean([s.sigma_px for s in res.spots]))
 
@@ -250,6 +251,33 @@ def test_weaker_spots_get_larger_sigma() -> None:
 
 
 # ----------------------------------------------------------------------------- distractors
+
+
+def test_sigma_grows_with_light_that_is_not_point_symmetric() -> None:
+    """A clean spot's sigma is the floor; a laser-coloured bar 4-7 px beside each spot pulls
+    its centre ~1.5 px and its sigma grows with it (the window's shift, the asymmetry), while
+    without those terms it would stay at the floor."""
+    def spots(bar: float, **kw: float) -> list[tuple[float, float]]:
+        rng = np.random.default_rng(5)
+        rig = four_laser_rig(rng)
+        img = background(rng, PINHOLE.height, PINHOLE.width)
+        truth = spot_positions(rng, PINHOLE, rig)
+        yy, xx = np.mgrid[0:img.shape[0], 0:img.shape[1]] + 0.5
+        for xy in truth.values():
+            paint_spot(img, (float(xy[0]), float(xy[1])), "red", sigma_px=2.0, peak=1.0)
+            near = (xx - xy[0] > 4.0) & (xx - xy[0] < 7.0) & (abs(yy - xy[1]) < 6.0)
+            img[near, 0] += bar
+        img += rng.normal(0, 0.01, img.shape).astype(np.float32)
+        res = detect_spots(to_uint8(img), PINHOLE, rig, DetectionOptions(**kw))
+        e = errors_px(res, truth)
+        return [(e[s.laser], s.sigma_px) for s in res.spots]
+
+    clean, pulled = spots(0.0), spots(0.5)
+    flat = spots(0.5, sigma_window_gain=0.0, sigma_asymmetry_gain=0.0)
+    assert len(clean) == len(pulled) == 4
+    assert all(e < 0.1 and 0.1 <= s < 0.11 for e, s in clean)
+    assert all(e > 1.0 and s > 0.2 for e, s in pulled)
+    assert all(s == pytest.approx(0.1, abs=1e-3) for _, s in flat)
 
 
 def _distractors(img: np.ndarray, rig: Rig, truth: dict[str, np.ndarray]) -> None:

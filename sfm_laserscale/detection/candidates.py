@@ -187,12 +187,12 @@ def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
         m.rejected = f"weak (SNR {m.snr:.1f} < {options.min_snr:g})"
     if m.rejected is not None:
         return
-    x, y, sig = refine_spot(planes, m.guess(), options.refine)
+    x, y, sig = refine_spot(planes, m.guess(), options.refine, sigma_model=options.sigma_model)
     if not (math.isfinite(sig) and math.hypot(x - m.x, y - m.y) <= max(2.0, m.radius_px)):
         m.rejected = "sub-pixel refinement failed"
         return
     m.x, m.y = x, y
-    m.sigma_px = math.hypot(sig, options.sigma_floor_px)
+    m.sigma_px = sig
     if options.colour_evidence:
         light = added_light(planes.channels, planes.clipped_laser, planes.clipped_any, x, y,
                             m.radius_px, m.support_px)
@@ -272,7 +272,7 @@ def separate_overlapping(planes: Planes, valid: list[Measure], options: Detectio
             mine = tuple(models[(j, i)] for j in nbs if (j, i) in models)
             if not mine:
                 continue
-            x, y, sig = refine_spot(planes, m.guess(), options.refine, mine)
+            x, y, sig = refine_spot(planes, m.guess(), options.refine, mine, options.sigma_model)
             if math.isfinite(sig) and math.hypot(x - m.x, y - m.y) <= max(2.0, m.radius_px):
                 m.x, m.y = x, y
-                m.sigma_px = math.hypot(sig, options.sigma_floor_px)
+                m.sigma_px = sig

@@ -9,6 +9,21 @@ from sfm_laserscale.model import Spot
 
 
 @dataclass(frozen=True)
+class SigmaModel:
+    """A spot's localisation σ beyond its noise (docs/DETECTION.md, "The localisation σ").
+
+    σ² = σ_noise² + (window_gain · shift)² + (asymmetry_gain · √A · σ_w)² + floor_px², with
+    ``shift`` (px) how far the centroid's fixed point moves when its window widens
+    (:data:`~sfm_laserscale.detection.refine.WIDE_WINDOW_RATIO`), A the spot's
+    :func:`~sfm_laserscale.detection.refine.asymmetry` and σ_w its window (px).
+    """
+
+    floor_px: float = 0.1
+    window_gain: float = 0.5
+    asymmetry_gain: float = 0.12
+
+
+@dataclass(frozen=True)
 class DetectionOptions:
     """Settings of :func:`sfm_laserscale.detection.detect_spots`.
 
@@ -54,7 +69,9 @@ class DetectionOptions:
     - ``refine``: "centroid" (Gaussian-windowed centroid iterated to its fixed point, the
       default) or "gaussian" (2D Gaussian fit to the unclipped pixels). Spots cut by the image
       border always use the fit.
-    - ``sigma_floor_px``: floor of the reported localisation sigma (model error).
+    - ``sigma_floor_px``, ``sigma_window_gain``, ``sigma_asymmetry_gain``: the localisation
+      sigma's terms beyond noise (:class:`SigmaModel`): a floor (demosaicing, JPEG chroma), and
+      light that is not point-symmetric about the centre.
     """
 
     min_range_m: float = 0.5
@@ -75,7 +92,14 @@ class DetectionOptions:
     colour_evidence: bool = True
     min_score: float = 0.25
     refine: str = "centroid"
-    sigma_floor_px: float = 0.05
+    sigma_floor_px: float = 0.1
+    sigma_window_gain: float = 0.5
+    sigma_asymmetry_gain: float = 0.12
+
+    @property
+    def sigma_model(self) -> SigmaModel:
+        """The localisation sigma's terms beyond noise."""
+        return SigmaModel(self.sigma_floor_px, self.sigma_window_gain, self.sigma_asymmetry_gain)
 
     def __post_init__(self) -> None:
         if not 0.0 < self.min_range_m < self.max_range_m:
@@ -88,7 +112,8 @@ class DetectionOptions:
                              f"{self.response!r}")
         if self.refine not in ("centroid", "gaussian"):
             raise InputError(f"refine must be 'centroid' or 'gaussian', got {self.refine!r}")
-        for name in ("min_clutter_ratio",):
+        for name in ("min_clutter_ratio", "sigma_floor_px", "sigma_window_gain",
+                     "sigma_asymmetry_gain"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("snr_half", "clutter_half", "colour_tau"):

@@ -18,6 +18,11 @@ determined value there (a flat top). The centre is a Gaussian-windowed centroid 
 fixed point (unbiased for any point-symmetric spot, saturated or not) or, optionally and for
 spots cut by the image border, a 2D Gaussian fit to the unclipped pixels. Overlapping spots are
 refined with each other's modelled light removed (:class:`NeighbourModel`).
+
+The localisation sigma is the ring noise through the centroid plus what noise does not show
+(:class:`~sfm_laserscale.detection.options.SigmaModel`): light that is not point-symmetric
+about the centre (:func:`structure_sigma`: the fixed point's shift under a wider window, the
+spot's :func:`asymmetry`) and a floor for demosaicing and chroma subsampling.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.optimize import least_squares
 
+from sfm_laserscale.detection.options import SigmaModel
 from sfm_laserscale.detection.response import Planes, robust_std
 
 F64 = NDArray[np.float64]
@@ -347,21 +353,44 @@ def refine_gaussian(
     return x, y, math.sqrt(max(0.5 * (cov[1, 1] + cov[2, 2]), 0.0))
 
 
+#: the wider window of the structure term: a centroid's fixed point under a window this many
+#: times wider (light that is point-symmetric about the centre does not move it)
+WIDE_WINDOW_RATIO = 1.6
+
+
+def structure_sigma(patch: SpotPatch, x: float, y: float, sigma_w: float,
+                    model: SigmaModel) -> float:
+    """σ (px, per axis) of a centre from light that is not point-symmetric about it (texture,
+    a halo's skew, a neighbour): every spot model is point-symmetric, so its fixed point does
+    not depend on the window and its mirror image matches it."""
+    xw, yw, _ = refine_centroid(patch, x, y, WIDE_WINDOW_RATIO * sigma_w)
+    shift = math.hypot(xw - x, yw - y) if math.isfinite(xw + yw) else 0.0
+    skew = math.sqrt(asymmetry(patch, x, y, sigma_w)) * sigma_w
+    return math.hypot(model.window_gain * shift, model.asymmetry_gain * skew)
 
 
 def refine_spot(planes: Planes, guess: SpotGuess, refine: str,
-                neighbours: tuple[NeighbourModel, ...] = ()) -> tuple[float, float, float]:
-    """Sub-pixel centre and localisation sigma of one candidate (crop COLMAP px); NaN if
-    impossible. ``refine``: "centroid" or "gaussian" (spots cut by the border: always)."""
+                neighbours: tuple[NeighbourModel, ...] = (),
+                sigma_model: SigmaModel = SigmaModel()  # noqa: B008 (frozen dataclass)
+                ) -> tuple[float, float, float]:
+    """Sub-pixel centre and localisation sigma (:class:`SigmaModel`) of one candidate (crop
+    COLMAP px); NaN if impossible. ``refine``: "centroid" or "gaussian" (spots cut by the
+    border: always)."""
     sigma_w = max(1.0, guess.radius_px)
     patch = spot_patch(planes, guess, guess.patch_support, neighbours)
     if patch is None:
         return math.nan, math.nan, math.nan
     if refine == "gaussian" or patch.cut:
         # a spot cut by the image border: a centroid would be pulled inwards, a symmetric
-        # model fitted to the visible pixels is not
-        return refine_gaussian(patch, guess.x, guess.y, sigma_w)
-    return refine_centroid(patch, guess.x, guess.y, sigma_w)
+        # model fitted to the visible pixels is not (and has no structure term: the wide
+        # window's centroid would move inwards for any spot)
+        x, y, sig = refine_gaussian(patch, guess.x, guess.y, sigma_w)
+        return x, y, math.hypot(sig, sigma_model.floor_px)
+    x, y, sig = refine_centroid(patch, guess.x, guess.y, sigma_w)
+    if not math.isfinite(sig):
+        return x, y, sig
+    return x, y, math.hypot(sig, structure_sigma(patch, x, y, sigma_w, sigma_model),
+                            sigma_model.floor_px)
 
 
 def asymmetry(patch: SpotPatch, x: float, y: float, radius_px: float) -> float:

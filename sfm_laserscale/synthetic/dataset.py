@@ -33,7 +33,10 @@ lens (‖O‖ = 0.165 m), all of one colour (``DemoDataOptions.laser_color``: re
 ``sfm_focal_error`` (δf / f): the SfM is run with the camera's focal length off by this much
 (held fixed), a reconstruction with its own error; the mesh is then the scene carried into that
 model by a smooth map fitted to its points (``synthetic/model_warp.py``), as an MVS mesh of that
-model would be, and the true scale is still the Umeyama fit of the camera centres.
+model would be. Such a model is no similarity of the world: its camera centres and its points
+have slightly different scales (by ~0.2 × δf/f on the demo's survey). The true scale is then
+the one of the mesh a user measures on, the Umeyama fit of the mesh's vertices (world ->
+model); the camera centres' fit is kept in truth.json as ``true_scale_cameras``.
 
 Spots are painted (``spots.paint_spot``, sigma = focal · ``beam_sigma_m`` / depth, in the rig's
 colour, white clipped core) only where the beam's first hit projects inside the image and is not
@@ -751,13 +754,16 @@ def make_demo_dataset(out_dir: Path, options: DemoDataOptions = DemoDataOptions(
     align = align_model({n: p.center for n, p in zip(ref.names, ref.poses, strict=True)},
                         model_centres(rec))
     mesh_model = align.apply(scene.vertices)
+    mesh_scale = align.scale
     if options.sfm_focal_error != 0.0:  # the model is no similarity of the world
         mesh_model = fit_model_warp(rec, camera, dict(zip(ref.names, ref.poses, strict=True))
                                     ).apply(scene.vertices)
+        mesh_scale = umeyama_sim3(scene.vertices, mesh_model)[0]
     write_mesh_ply(out_dir / "mesh.ply", mesh_model, scene.triangles,
                    vertex_colors(scene, options.gamma))
     (out_dir / "rig.toml").write_text(rig_to_toml(rig), encoding="utf-8")
     truth = _truth(options, camera, ref, las, align, stats, len(pairs))
+    truth["true_scale"], truth["true_scale_cameras"] = 1.0 / mesh_scale, 1.0 / align.scale
     (out_dir / "truth.json").write_text(json.dumps(truth, indent=2), encoding="utf-8")
     _write_spots_csv(out_dir / "true_spots.csv", las)
     timings["write"] = time.perf_counter() - t0
