@@ -10,10 +10,14 @@ left out: occlusions, points of other surfaces), and σ_p the points' own σ alo
 model's bundle-adjustment covariance, when known: their share of the spread is the points'
 noise, not the mesh's), the spot's mesh σ is
 
-    σ_mesh² = m² + max(ρ² − median(σ_p)², 0)
+    σ_mesh² = m² + max(min(ρ² − median(σ_p)², γ(d̄)), 0)
 
 m is the mesh's local offset (smoothing, a systematic part at that place), ρ its local
 roughness; both stay in σ at full size (one spot sees one place of the mesh, not an average).
+The roughness is at most γ(d̄), the semivariogram (below, less the points' noise) at d̄, the
+median distance of the spot's hit from its points: what they cannot tell about the spot's own
+place. A rough mesh keeps ρ²; where the spread is a smooth trend across the points (a tilt, a
+bump) the spot, amid its points, differs from their median by less than their spread.
 
 The spots of one image are a few decimetres apart, and a mesh's error is smooth over such
 distances (MVS smoothing, a misfit of the surface): their errors are correlated, so they must not
@@ -26,7 +30,7 @@ points' mean square S (less their noise): ρ(d) = 1 − γ(d) / S, clipped to [0
 fusion averages it over images — except for the part every place shares: a mesh offset from
 its points over the whole survey (:func:`shared_offset`: g, the mean of every spot's local
 offset m, with its standard error), a shared term like the rig's. The spots then keep the rest,
-σ_local² = (m − g)² + max(ρ² − median(σ_p)², 0), and the shared term is √(g² + se²) along every
+σ_local² = (m − g)² + (the roughness term above), and the shared term is √(g² + se²) along every
 spot's ray (``model_error.mesh_offset_direction``).
 """
 
@@ -91,8 +95,10 @@ def check_rays(pose: Pose, inlier_xyz: F64, idx: Sequence[NDArray[np.intp]]) -> 
     return np.repeat(centre[None], len(rows), axis=0), d
 
 
-def _one(laser: str, delta: F64, sigma_p: F64, options: MeshErrorOptions) -> SpotMeshError:
-    """The mesh σ of one spot from its points' range differences and their own σ."""
+def _one(laser: str, delta: F64, sigma_p: F64, options: MeshErrorOptions,
+         gamma_spot: float = float("nan")) -> SpotMeshError:
+    """The mesh σ of one spot from its points' range differences and their own σ, its local
+    roughness at most ``gamma_spot`` (the semivariogram at the spot's distance from them)."""
     ok = np.isfinite(delta)
     delta, sigma_p = delta[ok], sigma_p[ok]
     if len(delta) < options.min_points:
@@ -105,7 +111,10 @@ def _one(laser: str, delta: F64, sigma_p: F64, options: MeshErrorOptions) -> Spo
         m = float(np.median(delta))
         rho = 1.4826 * float(np.median(np.abs(delta - m)))
     sp = float(np.median(sigma_p))
-    sigma = float(np.sqrt(m * m + max(rho * rho - sp * sp, 0.0)))
+    rough = rho * rho - sp * sp
+    if np.isfinite(gamma_spot):  # what the neighbours cannot tell about the spot's own place
+        rough = min(rough, gamma_spot)
+    sigma = float(np.sqrt(m * m + max(rough, 0.0)))
     return SpotMeshError(laser, sigma, m, rho, sp, len(delta))
 
 
@@ -120,6 +129,16 @@ class MeshCheck:
 def _correlation(xyz: F64, delta: F64, sigma_p: F64, d: float, options: MeshErrorOptions
                  ) -> float:
     """ρ(d) of the mesh error from point pairs about d apart (module docstring)."""
+    gamma, s = _semivariogram(xyz, delta, sigma_p, d, options)
+    if not (s > 0 and np.isfinite(gamma)):
+        return options.default_correlation
+    return float(np.clip(1.0 - gamma / s, 0.0, 1.0))
+
+
+def _semivariogram(xyz: F64, delta: F64, sigma_p: F64, d: float, options: MeshErrorOptions
+                   ) -> tuple[float, float]:
+    """(γ(d), S) of the mesh error, both less the points' own noise: γ from the point pairs
+    about d apart, S the points' mean square (NaN, NaN without two points)."""
     ok = np.isfinite(delta)
     if ok.sum() >= 2:  # points of other surfaces (occlusions) left out, as for each spot
         med = float(np.median(delta[ok]))
@@ -127,18 +146,15 @@ def _correlation(xyz: F64, delta: F64, sigma_p: F64, d: float, options: MeshErro
         ok &= ~(np.abs(delta - med) > options.clip * rho) if rho > 0 else ok
     xyz, delta, sigma_p = xyz[ok], delta[ok], sigma_p[ok]
     if len(delta) < 2:
-        return options.default_correlation
+        return float("nan"), float("nan")
     i, j = np.triu_indices(len(delta), 1)
     dist = np.linalg.norm(xyz[i] - xyz[j], axis=1)
     near = np.abs(dist - d) <= options.pair_tolerance * d
     if near.sum() < options.min_pairs:
         near = np.argsort(np.abs(dist - d), kind="stable")[:options.min_pairs]
     noise = float(np.mean(sigma_p**2))
-    s = float(np.mean(delta**2)) - noise
-    if not s > 0:
-        return options.default_correlation
     gamma = 0.5 * float(np.mean((delta[i[near]] - delta[j[near]]) ** 2)) - noise
-    return float(np.clip(1.0 - gamma / s, 0.0, 1.0))
+    return gamma, float(np.mean(delta**2)) - noise
 
 
 def mesh_check(caster: MeshRaycaster, camera: Camera, pose: Pose, hits: Sequence[SpotHit],
@@ -163,16 +179,31 @@ def mesh_check(caster: MeshRaycaster, camera: Camera, pose: Pose, hits: Sequence
         rng = np.linalg.norm(inlier_xyz[rows] - pose.center, axis=1)
         delta[rows] = np.where(res.hit, res.distance - rng, np.nan)
     sig_p = np.asarray(point_sigma, np.float64)
-    spots = tuple(_one(h.laser, delta[i], sig_p[i], options)
-                  for h, i in zip(hits, idx, strict=True))
-    corr = np.eye(k)
     hit_xyz = np.array([np.asarray(h.hit_world, np.float64).reshape(3) for h in hits])
+    spots = tuple(_one(h.laser, delta[i], sig_p[i], options,
+                       _spot_gamma(hit_xyz[a], inlier_xyz, delta, sig_p, i, rows, options))
+                  for a, (h, i) in enumerate(zip(hits, idx, strict=True)))
+    corr = np.eye(k)
     for a in range(k):
         for b in range(a + 1, k):
             d = float(np.linalg.norm(hit_xyz[a] - hit_xyz[b]))
             corr[a, b] = corr[b, a] = _correlation(inlier_xyz[rows], delta[rows], sig_p[rows],
                                                    d, options)
     return MeshCheck(spots, corr)
+
+
+def _spot_gamma(hit_xyz: F64, inlier_xyz: F64, delta: F64, sigma_p: F64,
+                own: NDArray[np.intp], rows: NDArray[np.intp], options: MeshErrorOptions
+                ) -> float:
+    """γ(d̄) less the points' noise, d̄ the median distance of the spot's hit from its own
+    points: how much the mesh error at the spot may differ from theirs (NaN if unknown)."""
+    own = own[np.isfinite(delta[own])]
+    if len(own) == 0 or len(rows) < 2:
+        return float("nan")
+    d = float(np.median(np.linalg.norm(inlier_xyz[own] - hit_xyz, axis=1)))
+    if not d > 0:
+        return float("nan")
+    return _semivariogram(inlier_xyz[rows], delta[rows], sigma_p[rows], d, options)[0]
 
 
 @dataclass(frozen=True)

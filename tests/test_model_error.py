@@ -314,3 +314,28 @@ def test_mesh_errors_of_an_image_are_correlated_as_the_mesh_is() -> None:
                          "fcm", FusionOptions())
     assert indep is not None and corr is not None
     assert corr.sigma_random == pytest.approx(np.sqrt(2) * indep.sigma_random, rel=0.02)
+
+
+def test_mesh_sigma_keeps_only_the_roughness_its_points_cannot_tell() -> None:
+    """A mesh tilted against its points (error 0 at the spot, ±1.3 cm across its neighbours):
+    their spread is the tilt, which the semivariogram at the spot's distance from them halves,
+    so σ drops to about half of √(m² + ρ²) and still covers the error there (0); a mesh whose
+    error changes at every vertex keeps its full spread."""
+    from sfm_laserscale.mesh_error import mesh_check
+
+    rng = np.random.default_rng(7)
+    pose = nadir_pose(0.0, 0.0)
+    pts = np.column_stack([rng.uniform(-1.0, 1.0, (800, 2)), np.zeros(800)])
+    px = CAMERA.project(pose.transform(pts))
+    hit = SpotHit("L1", CAMERA.project(pose.transform(np.zeros((1, 3))))[0], 0.3,
+                  np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    opts = MeshErrorOptions(neighbours=60, max_radius=0.5)
+    g = np.linspace(-2.0, 2.0, 201)
+    xx = np.meshgrid(g, g, indexing="ij")[0]
+    tilt = mesh_check(_grid_mesh(-0.01 * xx / 0.3), CAMERA, pose, (hit,), px, pts,
+                      np.zeros(len(pts)), opts).spots[0]
+    assert tilt.sigma < 0.7 * np.hypot(tilt.offset, tilt.spread)
+    assert abs(tilt.offset) < 2.0 * tilt.sigma  # the error at the spot is 0
+    rough = mesh_check(_grid_mesh(rng.normal(scale=0.01, size=xx.shape)), CAMERA, pose, (hit,),
+                       px, pts, np.zeros(len(pts)), opts).spots[0]
+    assert rough.sigma == pytest.approx(np.hypot(rough.offset, rough.spread), rel=0.05)
