@@ -126,35 +126,59 @@ class MeshCheck:
     correlation: F64  # (K, K)
 
 
-def _correlation(xyz: F64, delta: F64, sigma_p: F64, d: float, options: MeshErrorOptions
-                 ) -> float:
-    """ρ(d) of the mesh error from point pairs about d apart (module docstring)."""
-    gamma, s = _semivariogram(xyz, delta, sigma_p, d, options)
-    if not (s > 0 and np.isfinite(gamma)):
-        return options.default_correlation
-    return float(np.clip(1.0 - gamma / s, 0.0, 1.0))
+@dataclass(frozen=True)
+class _Pairs:
+    """The point pairs of an image's mesh check (points of other surfaces left out, as for
+    each spot): their δ differences and distances, and the points' noise and mean square."""
+
+    diff2: F64  # (P,) (δ_i − δ_j)²
+    dist: F64  # (P,) distance of the two points (model units)
+    noise: float  # mean σ_p² of the points
+    mean_square: float  # mean δ² of the points, less their noise (S)
 
 
-def _semivariogram(xyz: F64, delta: F64, sigma_p: F64, d: float, options: MeshErrorOptions
-                   ) -> tuple[float, float]:
-    """(γ(d), S) of the mesh error, both less the points' own noise: γ from the point pairs
-    about d apart, S the points' mean square (NaN, NaN without two points)."""
+def _pairs(xyz: F64, delta: F64, sigma_p: F64, options: MeshErrorOptions) -> _Pairs | None:
+    """:class:`_Pairs` of the points with a δ (None with fewer than two)."""
     ok = np.isfinite(delta)
-    if ok.sum() >= 2:  # points of other surfaces (occlusions) left out, as for each spot
+    if ok.sum() >= 2:
         med = float(np.median(delta[ok]))
         rho = 1.4826 * float(np.median(np.abs(delta[ok] - med)))
         ok &= ~(np.abs(delta - med) > options.clip * rho) if rho > 0 else ok
     xyz, delta, sigma_p = xyz[ok], delta[ok], sigma_p[ok]
     if len(delta) < 2:
-        return float("nan"), float("nan")
+        return None
     i, j = np.triu_indices(len(delta), 1)
-    dist = np.linalg.norm(xyz[i] - xyz[j], axis=1)
-    near = np.abs(dist - d) <= options.pair_tolerance * d
-    if near.sum() < options.min_pairs:
-        near = np.argsort(np.abs(dist - d), kind="stable")[:options.min_pairs]
     noise = float(np.mean(sigma_p**2))
-    gamma = 0.5 * float(np.mean((delta[i[near]] - delta[j[near]]) ** 2)) - noise
-    return gamma, float(np.mean(delta**2)) - noise
+    return _Pairs((delta[i] - delta[j]) ** 2, np.linalg.norm(xyz[i] - xyz[j], axis=1), noise,
+                  float(np.mean(delta**2)) - noise)
+
+
+def _semivariogram(pairs: _Pairs, d: float, options: MeshErrorOptions) -> float:
+    """γ(d) of the mesh error less the points' noise, from the pairs about d apart (at least
+    ``min_pairs``: else the nearest distances)."""
+    off = np.abs(pairs.dist - d)
+    near = np.flatnonzero(off <= options.pair_tolerance * d)
+    if len(near) < options.min_pairs:
+        near = np.argsort(off, kind="stable")[:options.min_pairs]
+    return 0.5 * float(np.mean(pairs.diff2[near])) - pairs.noise
+
+
+def _correlation(pairs: _Pairs | None, d: float, options: MeshErrorOptions) -> float:
+    """ρ(d) = 1 − γ(d) / S of the mesh error (module docstring)."""
+    if pairs is None or not pairs.mean_square > 0:
+        return options.default_correlation
+    return float(np.clip(1.0 - _semivariogram(pairs, d, options) / pairs.mean_square, 0.0, 1.0))
+
+
+def _spot_gamma(hit_xyz: F64, own_xyz: F64, pairs: _Pairs | None,
+                options: MeshErrorOptions) -> float:
+    """γ(d̄) less the points' noise, d̄ the median distance of the spot's hit from its own
+    points (``own_xyz``, those with a δ): how much the mesh error at the spot may differ from
+    theirs (NaN if unknown)."""
+    if pairs is None or len(own_xyz) == 0:
+        return float("nan")
+    d = float(np.median(np.linalg.norm(own_xyz - hit_xyz, axis=1)))
+    return _semivariogram(pairs, d, options) if d > 0 else float("nan")
 
 
 def mesh_check(caster: MeshRaycaster, camera: Camera, pose: Pose, hits: Sequence[SpotHit],
@@ -179,31 +203,18 @@ def mesh_check(caster: MeshRaycaster, camera: Camera, pose: Pose, hits: Sequence
         rng = np.linalg.norm(inlier_xyz[rows] - pose.center, axis=1)
         delta[rows] = np.where(res.hit, res.distance - rng, np.nan)
     sig_p = np.asarray(point_sigma, np.float64)
+    pairs = _pairs(inlier_xyz[rows], delta[rows], sig_p[rows], options)
     hit_xyz = np.array([np.asarray(h.hit_world, np.float64).reshape(3) for h in hits])
-    spots = tuple(_one(h.laser, delta[i], sig_p[i], options,
-                       _spot_gamma(hit_xyz[a], inlier_xyz, delta, sig_p, i, rows, options))
-                  for a, (h, i) in enumerate(zip(hits, idx, strict=True)))
+    spots = tuple(
+        _one(h.laser, delta[i], sig_p[i], options,
+             _spot_gamma(hit_xyz[a], inlier_xyz[i[np.isfinite(delta[i])]], pairs, options))
+        for a, (h, i) in enumerate(zip(hits, idx, strict=True)))
     corr = np.eye(k)
     for a in range(k):
         for b in range(a + 1, k):
             d = float(np.linalg.norm(hit_xyz[a] - hit_xyz[b]))
-            corr[a, b] = corr[b, a] = _correlation(inlier_xyz[rows], delta[rows], sig_p[rows],
-                                                   d, options)
+            corr[a, b] = corr[b, a] = _correlation(pairs, d, options)
     return MeshCheck(spots, corr)
-
-
-def _spot_gamma(hit_xyz: F64, inlier_xyz: F64, delta: F64, sigma_p: F64,
-                own: NDArray[np.intp], rows: NDArray[np.intp], options: MeshErrorOptions
-                ) -> float:
-    """γ(d̄) less the points' noise, d̄ the median distance of the spot's hit from its own
-    points: how much the mesh error at the spot may differ from theirs (NaN if unknown)."""
-    own = own[np.isfinite(delta[own])]
-    if len(own) == 0 or len(rows) < 2:
-        return float("nan")
-    d = float(np.median(np.linalg.norm(inlier_xyz[own] - hit_xyz, axis=1)))
-    if not d > 0:
-        return float("nan")
-    return _semivariogram(inlier_xyz[rows], delta[rows], sigma_p[rows], d, options)[0]
 
 
 @dataclass(frozen=True)
