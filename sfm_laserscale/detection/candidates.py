@@ -48,7 +48,7 @@ from sfm_laserscale.detection.score import (
     colour_evidence,
     contrast_term,
 )
-from sfm_laserscale.detection.shape import Blob, shape_and_contrast
+from sfm_laserscale.detection.shape import TOO_LARGE, Blob, shape_and_contrast
 
 F32 = NDArray[np.float32]
 #: half-maximum radius (px) up to which a clipped core's rim is within the reach of demosaicing
@@ -132,13 +132,13 @@ def _sources(channels: Channels, planes: Planes, options: DetectionOptions,
 
 
 def _covering(out: list[Measure], x: float, y: float) -> str | None:
-    """Why a maximum at (x, y) repeats an earlier one: inside a spot. (A maximum inside a blob
-    too large to be a spot is measured: a far, faint spot sits in the beam's glow, which is
-    such a blob.)"""
+    """Why a maximum at (x, y) repeats an earlier one: inside a too-large blob or a spot."""
     for o in out:
         d = math.hypot(o.x - x, o.y - y)
         if o.rejected is None and d < max(2.0, o.radius_px):
             return f"duplicate of the stronger maximum at ({o.x:.1f}, {o.y:.1f})"
+        if o.rejected is not None and o.rejected.startswith(TOO_LARGE) and d < o.radius_px:
+            return f"part of the too-large blob at ({o.x:.1f}, {o.y:.1f})"
     return None
 
 
