@@ -364,7 +364,7 @@ def structure_sigma(patch: SpotPatch, x: float, y: float, sigma_w: float,
     a halo's skew, a neighbour): every spot model is point-symmetric, so its fixed point does
     not depend on the window and its mirror image matches it."""
     xw, yw, _ = refine_centroid(patch, x, y, WIDE_WINDOW_RATIO * sigma_w)
-    shift = math.hypot(xw - x, yw - y) if math.isfinite(xw + yw) else 0.0
+    shift = math.hypot(xw - x, yw - y)
     skew = math.sqrt(asymmetry(patch, x, y, sigma_w)) * sigma_w
     return math.hypot(model.window_gain * shift, model.asymmetry_gain * skew)
 

@@ -681,10 +681,11 @@ def _render_all(raycaster: SceneRaycaster, camera: Camera, ref: _Views, las: _Vi
 
 
 def _truth(options: DemoDataOptions, camera: Camera, ref: _Views, las: _Views,
-           align: Alignment, stats: SfmStats, n_pairs: int) -> dict[str, Any]:
-    """The content of truth.json."""
+           align: Alignment, stats: SfmStats, n_pairs: int, mesh_scale: float) -> dict[str, Any]:
+    """The content of truth.json (``mesh_scale``: the mesh's model_from_world scale)."""
     return {
-        "true_scale": 1.0 / align.scale,
+        "true_scale": 1.0 / mesh_scale,
+        "true_scale_cameras": 1.0 / align.scale,
         "true_scale_units": "metres per model unit",
         "model_from_world": {"scale": align.scale,
                              "rotation_wxyz": [float(v) for v in qvec_from_rotmat(align.R)],
@@ -762,8 +763,7 @@ def make_demo_dataset(out_dir: Path, options: DemoDataOptions = DemoDataOptions(
     write_mesh_ply(out_dir / "mesh.ply", mesh_model, scene.triangles,
                    vertex_colors(scene, options.gamma))
     (out_dir / "rig.toml").write_text(rig_to_toml(rig), encoding="utf-8")
-    truth = _truth(options, camera, ref, las, align, stats, len(pairs))
-    truth["true_scale"], truth["true_scale_cameras"] = 1.0 / mesh_scale, 1.0 / align.scale
+    truth = _truth(options, camera, ref, las, align, stats, len(pairs), mesh_scale)
     (out_dir / "truth.json").write_text(json.dumps(truth, indent=2), encoding="utf-8")
     _write_spots_csv(out_dir / "true_spots.csv", las)
     timings["write"] = time.perf_counter() - t0
