@@ -56,6 +56,8 @@ F32 = NDArray[np.float32]
 WHITENED_MAX_RADIUS = 3.0
 #: … when its colour term is below this
 WHITENED_MAX_COLOUR = 0.5
+#: a brightness maximum this close (px) to a colour candidate is the same maximum
+SAME_MAXIMUM_PX = 1.0
 
 
 @dataclass
@@ -236,7 +238,8 @@ def candidates_for_colour(
                 m.rejected = m.rejected or _covering(out, m.x, m.y)
                 n_valid += m.rejected is None
             if src.name == "bright" and m.rejected is not None and m.rejected.startswith("dup"):
-                continue  # a colour candidate already stands there
+                _better_of_the_two(out, m, rc, planes, src, bright_plane, options, region)
+                continue  # a colour candidate stands there (replaced if this one is better)
             out.append(m)
     separate_overlapping(planes, [m for m in out if m.rejected is None], options)
     x0, y0 = region.roi[:2]
@@ -244,6 +247,27 @@ def candidates_for_colour(
         m.x += x0
         m.y += y0
     return out
+
+
+def _better_of_the_two(out: list[Measure], m: Measure, rc: tuple[int, int], planes: Planes,
+                       src: _Source, bright_plane: F32 | None, options: DetectionOptions,
+                       region: SearchRegion) -> None:
+    """In place: a brightness maximum ``m`` repeating a colour candidate at least
+    SAME_MAXIMUM_PX away is measured too, and replaces it when its evidence is stronger.
+
+    A clipped core reads white over green-cyan water: its colour response peaks on the green
+    halo beside the core, its brightness at the core, so the colour candidate is measured off
+    the spot (2-3 px) and the spot itself was dropped as its duplicate.
+    """
+    near = [o for o in out if o.rejected is None and o.source == "colour"
+            and math.hypot(o.x - m.x, o.y - m.y) < max(2.0, o.radius_px)]
+    if not near or math.hypot(near[0].x - m.x, near[0].y - m.y) < SAME_MAXIMUM_PX:
+        return
+    o = near[0]
+    m.rejected = None
+    _measure(planes, m, src.plane, bright_plane, rc, options, region.max_radius)
+    if m.rejected is None and m.base_score * m.colour.term > o.base_score * o.colour.term:
+        out[out.index(o)] = m
 
 
 def separate_overlapping(planes: Planes, valid: list[Measure], options: DetectionOptions,
