@@ -4,7 +4,9 @@ A calibrated laser may take a candidate of its colour (any colour for "any": the
 then compares with each candidate's channel) within ``band_px`` of its beam segment; its score
 is the candidate's evidence (:mod:`.score`), ``depth`` (below) and the agreement of its range
 with the other lasers' spots; the spots are chosen jointly (:mod:`.joint`) and a laser whose
-best candidate scores below ``min_score`` gets none. An uncalibrated laser takes the best free
+best candidate scores below ``min_score`` gets none; a laser still without a spot then takes a
+laser-coloured maximum held back by the clutter gate at the range of the other spots
+(:func:`second_look`). An uncalibrated laser takes the best free
 candidate of its colour when no other laser shares that colour. A laser without a spot is
 explained by the best candidates in its band, each with its score and the test it failed or its
 weakest evidence.
@@ -22,6 +24,7 @@ from sfm_laserscale.detection.candidates import Measure
 from sfm_laserscale.detection.joint import (
     CLIPPED_COLOUR,
     MAX_OPTIONS,
+    agrees,
     choose,
     laser_options,
     range_term,
@@ -39,6 +42,8 @@ LIT_COLOUR = 0.7
 DEPTH = 0.1
 #: "farther" means beyond this fraction of the candidate's own range
 DEPTH_MARGIN = 0.05
+#: clutter term of a maximum below the clutter gate taken at the other spots' range
+CLUTTER_AT_RANGE = 1.0
 
 
 def beam_term(dist_px: F64, band_px: float) -> F64:
@@ -162,6 +167,70 @@ def assign_calibrated(
             if m.laser is None and not m.reason and _score(m, 1.0, name) < options.min_score:
                 m.reason = f"score below min_score for {name}"
     return chosen, missing, dist
+
+
+def second_look(rig: Rig, region: SearchRegion, measures: list[Measure], valid: list[Measure],
+                chosen: dict[str, int], options: DetectionOptions) -> dict[str, int]:
+    """Calibrated lasers still without a spot take a maximum held back by the clutter gate
+    (``Measure.second_look``) whose light has the laser's colour (colour term at least
+    LIT_COLOUR) and whose range agrees with the median range of the ``chosen`` spots
+    (:func:`~sfm_laserscale.detection.joint.agrees`); its clutter term is then
+    CLUTTER_AT_RANGE and it is taken when that scores ``min_score``. A maximum of the scene's
+    texture sits anywhere along a band; a laser's spot sits at the range of the other spots.
+    Taken measures are appended to ``valid``; returns laser name -> index into ``valid``."""
+    pool = [m for m in measures if m.second_look]
+    ref = _chosen_range(region, valid, chosen)
+    taken: dict[str, int] = {}
+    for las in rig.lasers:
+        if not pool or ref is None or las.name in chosen or not las.calibrated:
+            continue
+        fits = [(v, m) for m in pool if las.color in ("any", m.color)
+                and (v := _second_look_value(m, las.name, region, ref, options)) > 0.0]
+        if fits:
+            value, m = max(fits, key=lambda vm: vm[0])
+            _take_second_look(m, las.name, value, region)
+            valid.append(m)
+            taken[las.name] = len(valid) - 1
+            pool.remove(m)
+    return taken
+
+
+def _chosen_range(region: SearchRegion, valid: list[Measure], chosen: dict[str, int]
+                  ) -> float | None:
+    """Median range (m) of the chosen spots of calibrated lasers, or None without any."""
+    ranges = [float(range_along_beam(np.array([[valid[j].x, valid[j].y]]),
+                                     region.polylines[name], region.ranges[name])[0])
+              for name, j in chosen.items() if len(region.polylines.get(name, ())) > 0]
+    finite = [r for r in ranges if math.isfinite(r)]
+    return float(np.median(finite)) if finite else None
+
+
+def _second_look_value(m: Measure, name: str, region: SearchRegion, ref_m: float,
+                       options: DetectionOptions) -> float:
+    """Score of a second-look maximum for a laser, 0 when it does not qualify."""
+    line = region.polylines[name]
+    if len(line) == 0 or m.colour.term < LIT_COLOUR:
+        return 0.0
+    xy = np.array([[m.x, m.y]])
+    dist = float(distance_to_polyline(xy, line)[0])
+    if dist > region.band_px:
+        return 0.0
+    if not agrees(float(range_along_beam(xy, line, region.ranges[name])[0]), ref_m):
+        return 0.0
+    terms = {**m.terms, "clutter": CLUTTER_AT_RANGE}
+    beam = float(beam_term(np.array([dist]), region.band_px)[0])
+    value = float(np.prod(list(terms.values()))) * m.colour.term * beam
+    return value if value >= options.min_score else 0.0
+
+
+def _take_second_look(m: Measure, name: str, value: float, region: SearchRegion) -> None:
+    """In place: a second-look maximum becomes laser ``name``'s spot."""
+    dist = float(distance_to_polyline(np.array([[m.x, m.y]]), region.polylines[name])[0])
+    m.terms["clutter"] = CLUTTER_AT_RANGE
+    m.evidence = evidence(m, float(beam_term(np.array([dist]), region.band_px)[0]), name)
+    m.rejected, m.laser, m.score = None, name, value
+    m.reason = (f"assigned to {name}: below the clutter gate ({m.clutter_ratio:.2f} × clutter "
+                "level), laser-coloured, at the range of the other lasers' spots")
 
 
 def assign_uncalibrated(

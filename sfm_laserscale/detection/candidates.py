@@ -5,9 +5,11 @@ bands of a luma-dominant (green) laser or where the laser channel clips) the loc
 its multi-scale DoG above a noise-relative threshold are taken strongest first. Maxima outside
 every beam band, below ``min_clutter_ratio`` × the scene's clutter level, beyond
 ``max_candidates`` or repeating a stronger candidate are listed with that reason and not
-measured. The others are measured (:mod:`.shape`), refined (:mod:`.refine`) and get their
-evidence (:mod:`.score`); hard tests (no contrast, too large, not compact, weak, refinement
-failed) reject a candidate with a reason, everything else is evidence in its score.
+measured, except maxima in a band within reach of the gate (``second_look_clutter_ratio``),
+which are measured for the second look of :mod:`.assign` but stay out of the first choice.
+The others are measured (:mod:`.shape`), refined (:mod:`.refine`) and get their evidence
+(:mod:`.score`); hard tests (no contrast, too large, not compact, weak, refinement failed)
+reject a candidate with a reason, everything else is evidence in its score.
 Overlapping spots are refined again with each other's light removed.
 """
 
@@ -58,6 +60,9 @@ WHITENED_MAX_RADIUS = 3.0
 WHITENED_MAX_COLOUR = 0.5
 #: a brightness maximum this close (px) to a colour candidate is the same maximum
 SAME_MAXIMUM_PX = 1.0
+#: maxima below the clutter gate measured for the second look, per response
+SECOND_LOOK_MAX = 12
+WEAKER_THAN_SCENE = "no stronger than the scene's own blobs"
 
 
 @dataclass
@@ -76,6 +81,7 @@ class Measure:
     support_px: float = 0.0
     bright: bool = False  # refined on the brightness signal (its laser channel clips)
     whitened: bool = False  # a small clipped core whose colour read against it
+    second_look: bool = False  # below the clutter gate, measured for the second look
     sigma_px: float = 1.0
     colour: ColourEvidence = field(default_factory=lambda: ColourEvidence(0.5))
     terms: dict[str, float] = field(default_factory=dict)  # evidence without colour and beam
@@ -158,8 +164,8 @@ def _unmeasured_reason(m: Measure, rc: tuple[int, int], src: _Source, region: Se
     if region.near is not None and not region.near[row, col]:
         return "off every beam band (not measured)"
     if m.response < options.min_clutter_ratio * src.clutter:
-        return (f"no stronger than the scene's own blobs (response {m.clutter_ratio:.2f} × "
-                f"clutter level; not measured)")
+        return (f"{WEAKER_THAN_SCENE} (response {m.clutter_ratio:.2f} × clutter level; "
+                "not measured)")
     if n_valid >= options.max_candidates:
         return f"beyond the {options.max_candidates} strongest maxima (not measured)"
     return None
@@ -223,7 +229,7 @@ def candidates_for_colour(
     bright_plane = sources[-1].plane if sources[-1].name == "bright" else None
     out: list[Measure] = []
     for src in sources:
-        n_valid = 0
+        n_valid = n_second = 0
         for row, col in local_maxima(src.dog, src.threshold)[: 4 * options.max_candidates]:
             rc = (int(row), int(col))
             if src.name == "bright" and not _bright_candidate(src, rc, region):
@@ -233,7 +239,10 @@ def candidates_for_colour(
                         clutter_ratio=value / src.clutter if src.clutter > 0 else math.inf)
             m.rejected = (_unmeasured_reason(m, rc, src, region, n_valid, options)
                           or _covering(out, m.x, m.y))
-            if m.rejected is None:
+            if n_second < SECOND_LOOK_MAX and _second_look(m, rc, region, options):
+                n_second += 1
+                _measure_second_look(out, m, rc, planes, src, bright_plane, options, region)
+            elif m.rejected is None:
                 _measure(planes, m, src.plane, bright_plane, rc, options, region.max_radius)
                 m.rejected = m.rejected or _covering(out, m.x, m.y)
                 n_valid += m.rejected is None
@@ -247,6 +256,28 @@ def candidates_for_colour(
         m.x += x0
         m.y += y0
     return out
+
+
+def _second_look(m: Measure, rc: tuple[int, int], region: SearchRegion,
+                 options: DetectionOptions) -> bool:
+    """Whether a maximum held back by the clutter gate is measured for the second look: inside
+    a band, at least ``second_look_clutter_ratio`` clutter levels strong."""
+    row, col = rc
+    in_band = region.near is None or bool(region.near[row, col])
+    return (in_band and m.rejected is not None and m.rejected.startswith(WEAKER_THAN_SCENE)
+            and m.clutter_ratio >= options.second_look_clutter_ratio)
+
+
+def _measure_second_look(out: list[Measure], m: Measure, rc: tuple[int, int], planes: Planes,
+                         src: _Source, bright_plane: F32 | None, options: DetectionOptions,
+                         region: SearchRegion) -> None:
+    """In place: measure a maximum below the clutter gate; it stays out of the first choice
+    (``rejected`` keeps the gate's reason) and is marked ``second_look`` when it measured."""
+    m.rejected = None
+    _measure(planes, m, src.plane, bright_plane, rc, options, region.max_radius)
+    m.second_look = m.rejected is None and _covering(out, m.x, m.y) is None
+    m.rejected = (f"{WEAKER_THAN_SCENE} (response {m.clutter_ratio:.2f} × clutter level; "
+                  "taken only at the range of the other lasers' spots)")
 
 
 def _better_of_the_two(out: list[Measure], m: Measure, rc: tuple[int, int], planes: Planes,

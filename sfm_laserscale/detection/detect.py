@@ -18,6 +18,7 @@ from sfm_laserscale.detection.assign import (
     assign_calibrated,
     assign_uncalibrated,
     explain_unused,
+    second_look,
 )
 from sfm_laserscale.detection.beams import SearchRegion, search_region
 from sfm_laserscale.detection.candidates import Measure, candidates_for_colour
@@ -94,6 +95,9 @@ def detect_spots(
     trim_heap()  # the detection planes (~16 bytes per pixel) go back to the OS
     valid = [m for m in measures if m.rejected is None]
     chosen, missing, dist = assign_calibrated(rig, region, valid, options)
+    for name, k in second_look(rig, region, measures, valid, chosen, options).items():
+        chosen[name] = k  # appended to valid: dist keeps the first choice's columns
+        missing.pop(name, None)
     chosen_u, missing_u = assign_uncalibrated(rig, valid, set(chosen.values()), options)
     chosen.update(chosen_u)
     missing.update(missing_u)

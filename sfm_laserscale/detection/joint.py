@@ -120,7 +120,7 @@ def rescued(options: dict[str, list[Option]], chosen: dict[str, Option], min_sco
         if name in chosen:
             continue
         fits = [o for o in opts if o.rescue >= min_score and o.index not in taken
-                and _agrees(o.range_m, ref)]
+                and agrees(o.range_m, ref)]
         if fits:
             best = max(fits, key=lambda o: o.rescue)
             out[name] = replace(best, rescued=True)
@@ -128,6 +128,6 @@ def rescued(options: dict[str, list[Option]], chosen: dict[str, Option], min_sco
     return out
 
 
-def _agrees(range_m: float, ref_m: float) -> bool:
+def agrees(range_m: float, ref_m: float) -> bool:
     """Whether a range lies within RESCUE_RANGE_LN (log ratio) of a reference range."""
     return math.isfinite(range_m) and abs(math.log(range_m / ref_m)) <= RESCUE_RANGE_LN

@@ -46,6 +46,11 @@ class DetectionOptions:
     - ``min_clutter_ratio``: maxima whose blob response is below this many times the scene's
       *clutter level* (the 99th percentile of the response at all its local maxima in the
       searched region, :func:`clutter_level`) are listed, not measured. 0 measures them all.
+    - ``second_look_clutter_ratio``: maxima inside a beam's band between this and
+      ``min_clutter_ratio`` clutter levels are measured too (at most 12 per response), for a
+      second look: a laser left without a spot takes one of them where its light has the
+      laser's colour and its range agrees with the other lasers' spots (:mod:`.assign`).
+      ``min_clutter_ratio`` or more switches the second look off.
     - ``saturation_level``: channel value (0–1) above which a pixel counts as clipped.
     - ``max_candidates``: strongest local maxima measured per colour and response.
     - ``input_gamma``: pixel values are decoded as ``(v / 255) ** input_gamma`` before anything
@@ -82,6 +87,7 @@ class DetectionOptions:
     min_snr: float = 5.0
     max_annulus_ratio: float = 0.5
     min_clutter_ratio: float = 1.5
+    second_look_clutter_ratio: float = 1.0
     saturation_level: float = 250.0 / 255.0
     max_candidates: int = 100
     input_gamma: float = 2.2
@@ -112,8 +118,8 @@ class DetectionOptions:
                              f"{self.response!r}")
         if self.refine not in ("centroid", "gaussian"):
             raise InputError(f"refine must be 'centroid' or 'gaussian', got {self.refine!r}")
-        for name in ("min_clutter_ratio", "sigma_floor_px", "sigma_window_gain",
-                     "sigma_asymmetry_gain"):
+        for name in ("min_clutter_ratio", "second_look_clutter_ratio", "sigma_floor_px",
+                     "sigma_window_gain", "sigma_asymmetry_gain"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("snr_half", "clutter_half", "colour_tau"):

@@ -1,0 +1,87 @@
+"""The second look: a laser left without a spot takes a maximum held back by the clutter gate
+where its light has the laser's colour and its range agrees with the other lasers' spots."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sfm_laserscale.detection import DetectionOptions, detect_spots
+from sfm_laserscale.model import Camera
+from sfm_laserscale.rig import Rig, rig_from_dict
+from sfm_laserscale.synthetic.spots import paint_spot, to_uint8
+
+CAMERA = Camera(1, "PINHOLE", 1024, 768, np.array([900.0, 900.0, 512.0, 384.0]))
+WATER = (0.06, 0.30, 0.34)  # linear blue-green scene
+
+
+def _rig() -> Rig:
+    t = math.radians(2.0)
+    return rig_from_dict({"laser": [
+        {"name": "L1", "origin": [0.165, 0.0, 0.0], "direction": [-math.sin(t), 0.0, math.cos(t)],
+         "color": "green"},
+        {"name": "L2", "origin": [0.0, 0.165, 0.0], "direction": [0.0, -math.sin(t), math.cos(t)],
+         "color": "green"}]})
+
+
+def _xy(rig: Rig, name: str, range_m: float) -> tuple[float, float]:
+    las = rig.lasers[rig.names.index(name)]
+    assert las.origin is not None and las.direction is not None
+    xy = CAMERA.project((las.origin + range_m * las.direction)[None, :])[0]
+    return float(xy[0]), float(xy[1])
+
+
+def _image(l2_range_m: float, l2_colour: str = "green") -> np.ndarray:
+    """L1's spot bright, L2's faint (a 25th of it), on noisy water."""
+    rng = np.random.default_rng(11)
+    img = np.empty((CAMERA.height, CAMERA.width, 3), np.float32)
+    img[:] = WATER
+    img += rng.normal(0.0, 0.004, img.shape).astype(np.float32)
+    rig = _rig()
+    paint_spot(img, _xy(rig, "L1", 2.5), "green", sigma_px=1.5, peak=1.5)
+    if l2_colour == "green":
+        paint_spot(img, _xy(rig, "L2", l2_range_m), "green", sigma_px=1.5, peak=0.06)
+    else:  # white light of the same strength
+        yy, xx = np.mgrid[0 : CAMERA.height, 0 : CAMERA.width] + 0.5
+        x, y = _xy(rig, "L2", l2_range_m)
+        img += (0.05 * np.exp(-0.5 * ((xx - x) ** 2 + (yy - y) ** 2) / 1.5**2)
+                )[..., None].astype(np.float32)
+    return to_uint8(img, 2.2)
+
+
+@pytest.fixture(scope="module")
+def gate() -> float:
+    """A clutter gate between the two spots' responses (in clutter levels)."""
+    res = detect_spots(_image(2.6), CAMERA, _rig(), DetectionOptions(min_clutter_ratio=0.0))
+    ratio = {s.laser: [c.clutter_ratio for c in res.candidates if c.laser == s.laser][0]
+             for s in res.spots}
+    assert set(ratio) == {"L1", "L2"} and 2.0 < ratio["L2"] < ratio["L1"] / 1.4
+    return math.sqrt(ratio["L1"] * ratio["L2"])
+
+
+def test_a_faint_spot_at_the_other_spots_range_is_taken_on_a_second_look(gate: float) -> None:
+    rig = _rig()
+    res = detect_spots(_image(2.6), CAMERA, rig, DetectionOptions(min_clutter_ratio=gate))
+    got = {s.laser: s for s in res.spots}
+    assert set(got) == {"L1", "L2"}
+    assert math.dist((got["L2"].x, got["L2"].y), _xy(rig, "L2", 2.6)) < 0.3
+    l2 = [c for c in res.candidates if c.laser == "L2"][0]
+    assert "below the clutter gate" in l2.reason and dict(l2.evidence)["clutter"] == 1.0
+    # without the second look the gate holds it back, and the reason says so
+    off = detect_spots(_image(2.6), CAMERA, rig,
+                       DetectionOptions(min_clutter_ratio=gate, second_look_clutter_ratio=gate))
+    assert {s.laser for s in off.spots} == {"L1"}
+    assert "no stronger than the scene's own blobs" in off.missing["L2"]
+
+
+@pytest.mark.parametrize(("range_m", "colour"), [(5.0, "green"), (2.6, "white")])
+def test_second_look_needs_the_other_spots_range_and_the_laser_colour(
+        gate: float, range_m: float, colour: str) -> None:
+    res = detect_spots(_image(range_m, colour), CAMERA, _rig(),
+                       DetectionOptions(min_clutter_ratio=gate))
+    assert {s.laser for s in res.spots} == {"L1"}
+    # measured for the second look, and not taken
+    assert "taken only at the range of the other lasers' spots" in res.missing["L2"], (
+        res.missing["L2"])
