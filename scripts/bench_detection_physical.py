@@ -4,7 +4,7 @@ Usage::
 
     python scripts/bench_detection_physical.py [--per-condition 20]
         [--sizes 1920x1080,4000x3000] [--conditions clipped_cores,green_water,...]
-        [--seed 0] [--workers 2] [--out results.json] [--markdown]
+        [--seed 0] [--workers 2] [--out results.json] [--markdown] [--visibility]
 
 Images come from the independent generator ``sfm_laserscale.synthetic.underwater`` (which
 shares no code or parameter with the detector): per condition and size, ``--per-condition``
@@ -20,6 +20,10 @@ than 1.5 px is both a miss and a false). Per condition x size: spots (true, visi
 spots, detection seconds per image, the misses (image index, laser, the detector's reason
 from ``result.missing``) and the falses. Targets: found >= 99 %, false <= 0.5 %, median <=
 0.15 px, p95 <= 0.5 px.
+
+``--visibility`` also captures every frame without the lasers (same noise draws) and records,
+for each missed spot, how much it changes the photograph (``visible_levels``: the largest
+8-bit difference near the truth); a miss of >= 20 levels is a spot anyone sees.
 
 ``run_benchmark`` (and ``run_small``, a reduced set for tests) can be imported through
 ``tests/script_loader.py``.
@@ -46,6 +50,9 @@ import numpy as np
 from sfm_laserscale.synthetic.underwater import CONDITIONS, Frame, render_frame
 
 MATCH_PX = 1.5
+#: a spot that changes the photograph by this many 8-bit levels is plainly visible (the
+#: scene's texture varies by 2-10 levels between neighbouring pixels)
+VISIBLE_LEVELS = 20
 TARGETS = {"found_pct": 99.0, "false_pct": 0.5, "median_px": 0.15, "p95_px": 0.5}
 DEFAULT_SIZES = ((1920, 1080), (4000, 3000))
 
@@ -61,6 +68,7 @@ class Job:
     seed: int
     condition_index: int
     size_index: int
+    laser_free: bool = False  # also capture it without the lasers (visibility of misses)
 
     def rng(self) -> np.random.Generator:
         """The frame's own generator (reproducible, independent of the other frames)."""
@@ -69,10 +77,10 @@ class Job:
 
 
 def jobs_for(conditions: Sequence[str], sizes: Sequence[tuple[int, int]], per_condition: int,
-             seed: int) -> list[Job]:
+             seed: int, laser_free: bool = False) -> list[Job]:
     """All images of a run, condition-major."""
     names = list(CONDITIONS)
-    return [Job(c, w, h, i, seed, names.index(c), si)
+    return [Job(c, w, h, i, seed, names.index(c), si, laser_free)
             for c in conditions for si, (w, h) in enumerate(sizes) for i in range(per_condition)]
 
 
@@ -109,7 +117,8 @@ def score_frame(frame: Frame, result: Any) -> dict[str, Any]:
             reason = f"reported {dist:.1f} px away"
         else:
             reason = str(result.missing.get(laser, "not reported"))
-        misses.append({"laser": laser, "reason": reason})
+        visible = frame.meta.get("spots", {}).get(laser, {}).get("visible_levels")
+        misses.append({"laser": laser, "reason": reason, "visible_levels": visible})
     return {"truths": len(truths), "reported": len(result.spots), "found": found,
             "misses": misses, "falses": falses}
 
@@ -121,7 +130,7 @@ def run_job(job: Job) -> dict[str, Any]:
     from sfm_laserscale.rig import rig_from_dict
 
     t0 = time.perf_counter()
-    frame = render_frame(job.condition, job.width, job.height, job.rng())
+    frame = render_frame(job.condition, job.width, job.height, job.rng(), job.laser_free)
     t1 = time.perf_counter()
     camera = parse_camera(frame.camera_spec)
     rig = rig_from_dict(tomllib.loads(frame.rig_toml))
@@ -134,7 +143,7 @@ def run_job(job: Job) -> dict[str, Any]:
                 "spot_meta": {k: {m: v for m, v in d.items()
                                   if m in ("peak_over_white", "range_m", "incidence_deg",
                                            "sigma_major_px", "oracle_shift_px",
-                                           "geometric_shift_px")}
+                                           "geometric_shift_px", "visible_levels")}
                               for k, d in frame.meta["spots"].items()}})
     return rec
 
@@ -169,10 +178,31 @@ def summarise(records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
             "detect_s_per_image": float(np.mean([r["detect_s"] for r in recs])),
             "render_s_per_image": float(np.mean([r["render_s"] for r in recs])),
             "miss_reasons": reasons.most_common(),
+            "misses_visible": _visible_misses(misses),
             "misses": misses,
             "falses": [{"image": r["index"], **f} for r in recs for f in r["falses"]],
         })
     return rows
+
+
+def _visible_misses(misses: list[dict[str, Any]]) -> int | None:
+    """How many misses change the photograph by VISIBLE_LEVELS or more at the spot (None when
+    the run had no laser-free captures)."""
+    levels = [m.get("visible_levels") for m in misses]
+    if any(v is None for v in levels):
+        return None
+    return sum(1 for v in levels if v is not None and v >= VISIBLE_LEVELS)
+
+
+def visibility_line(rows: Sequence[dict[str, Any]]) -> str | None:
+    """The pooled visibility of the misses, in words (None without laser-free captures)."""
+    counted = [r for r in rows if r.get("misses_visible") is not None]
+    if not counted:
+        return None
+    n = sum(len(r["misses"]) for r in counted)
+    seen = sum(r["misses_visible"] for r in counted)
+    return (f"{seen} of {n} missed spots change the photograph by ≥ {VISIBLE_LEVELS} levels "
+            "(8-bit, any channel) at the spot against its laser-free capture")
 
 
 def _within(recs: list[dict[str, Any]], k: float) -> float | None:
@@ -194,14 +224,15 @@ def _reason_kind(reason: str) -> str:
 
 def run_benchmark(conditions: Sequence[str] | None = None,
                   sizes: Sequence[tuple[int, int]] = DEFAULT_SIZES, per_condition: int = 20,
-                  seed: int = 0, workers: int = 2) -> tuple[list[dict[str, Any]],
-                                                            list[dict[str, Any]]]:
-    """(per-image records, per condition x size summary rows)."""
+                  seed: int = 0, workers: int = 2, laser_free: bool = False
+                  ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """(per-image records, per condition x size summary rows); ``laser_free``: also capture
+    every frame without the lasers, to tell how visible each missed spot was."""
     names = list(conditions) if conditions else list(CONDITIONS)
     unknown = [c for c in names if c not in CONDITIONS]
     if unknown:
         raise ValueError(f"unknown condition(s) {unknown}; known: {list(CONDITIONS)}")
-    jobs = jobs_for(names, sizes, per_condition, seed)
+    jobs = jobs_for(names, sizes, per_condition, seed, laser_free)
     if workers > 1 and len(jobs) > 1:
         pool = multiprocessing.get_context("fork").Pool(workers)
         try:
@@ -218,9 +249,9 @@ def run_benchmark(conditions: Sequence[str] | None = None,
 
 def run_small(conditions: Sequence[str] = ("clipped_cores", "no_lasers"),
               size: tuple[int, int] = (640, 480), per_condition: int = 1,
-              seed: int = 0) -> list[dict[str, Any]]:
+              seed: int = 0, laser_free: bool = False) -> list[dict[str, Any]]:
     """A reduced benchmark (small images, one process) for tests: summary rows."""
-    return run_benchmark(conditions, (size,), per_condition, seed, workers=1)[1]
+    return run_benchmark(conditions, (size,), per_condition, seed, 1, laser_free)[1]
 
 
 def _fmt(value: float | None, digits: int = 2) -> str:
@@ -268,6 +299,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None, help="write results JSON here")
     ap.add_argument("--markdown", action="store_true", help="print a Markdown table")
+    ap.add_argument("--visibility", action="store_true",
+                    help="also capture every frame without the lasers (same noise) and count "
+                         "the missed spots that are visible (slower: one more capture)")
     args = ap.parse_args(argv)
     conditions = [c for c in args.conditions.split(",") if c] or list(CONDITIONS)
     unknown = [c for c in conditions if c not in CONDITIONS]
@@ -275,7 +309,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         ap.error(f"unknown condition(s) {', '.join(unknown)}; known: {', '.join(CONDITIONS)}")
     t0 = time.perf_counter()
     records, rows = run_benchmark(conditions, args.sizes, args.per_condition, args.seed,
-                                  args.workers)
+                                  args.workers, args.visibility)
     elapsed = time.perf_counter() - t0
     if args.out is not None:
         args.out.write_text(json.dumps({"targets": TARGETS, "match_px": MATCH_PX,
@@ -283,6 +317,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                         "images": records}, indent=1, default=str))
     if args.markdown:
         print(markdown_table(rows))
+    if (line := visibility_line(rows)) is not None:
+        print(line)
     else:
         for r in rows:
             print(f"{r['condition']:16s} {r['size']:>9s}  found {_fmt(r['found_pct'], 1):>5s} %"

@@ -87,3 +87,14 @@ def test_reduced_physical_benchmark_quality(bench: ModuleType) -> None:
     # them within 1.96σ and 72 % within 3σ, docs/DETECTION.md)
     axes = [(2 * r["found"], r["within_3sigma_pct"]) for r in rows.values() if r["found"]]
     assert sum(n * pct for n, pct in axes) / sum(n for n, _ in axes) >= 88.0
+
+
+def test_visibility_of_the_misses(bench: ModuleType) -> None:
+    # with laser-free captures every miss says how much its spot changes the photograph
+    rows = bench.run_small(("green_all",), (960, 540), per_condition=1, laser_free=True)
+    (row,) = rows
+    assert row["misses_visible"] is not None
+    assert all(m["visible_levels"] is not None for m in row["misses"])
+    assert bench.visibility_line(rows).startswith(f"{row['misses_visible']} of")
+    plain = bench.run_small(("no_lasers",), (480, 360), per_condition=1)
+    assert bench.visibility_line(plain) is None or plain[0]["misses"] == []

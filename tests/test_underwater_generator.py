@@ -265,3 +265,22 @@ def test_generator_imports_nothing_from_the_rest_of_the_package() -> None:
             ok = (mod.split(".")[0] in allowed
                   or mod.startswith("sfm_laserscale.synthetic.underwater"))
             assert ok, f"{path.name} imports {mod}"
+
+
+def test_laser_free_capture_differs_only_near_the_lasers_light() -> None:
+    """The same frame without the lasers (same noise): identical away from the spots and the
+    beams' glow, and each spot changes the photograph plainly (visible_levels)."""
+    rng = np.random.default_rng([3, 1])
+    frame = render_frame("red_clean", 640, 480, rng, laser_free=True)
+    again = render_frame("red_clean", 640, 480, np.random.default_rng([3, 1]))
+    np.testing.assert_array_equal(frame.image_rgb, again.image_rgb)  # the flag changes nothing
+    dark = frame.image_laser_free_rgb
+    assert dark is not None and dark.shape == frame.image_rgb.shape
+    same = np.all(dark == frame.image_rgb, axis=2)
+    assert same.mean() > 0.8
+    for name, xy in frame.truth.items():
+        if xy is None:
+            continue
+        assert frame.meta["spots"][name]["visible_levels"] >= 20
+        col, row = int(xy[0]), int(xy[1])
+        assert not same[row, col]

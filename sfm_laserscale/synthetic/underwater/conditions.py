@@ -20,6 +20,7 @@ The table of conditions is :data:`CONDITIONS` (name -> :class:`Condition`).
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -152,7 +153,9 @@ class Frame:
     clipped in every channel the laser shows in: inside a lamp hot spot or behind a bright
     particle; ``CLIPPED_BACKGROUND``).
     ``rig_toml`` is the rig as given to the detector (true beams + calibration error);
-    ``camera_spec`` the COLMAP OPENCV camera.
+    ``camera_spec`` the COLMAP OPENCV camera. ``image_laser_free_rgb`` (with
+    ``render_frame(..., laser_free=True)``): the same photograph, same noise, without the
+    lasers' spots and glow.
     """
 
     image_rgb: U8
@@ -160,6 +163,7 @@ class Frame:
     rig_toml: str
     truth: dict[str, tuple[float, float] | None]
     meta: dict[str, Any]
+    image_laser_free_rgb: U8 | None = None
 
 
 def _log_uniform(rng: np.random.Generator, lo_hi: Range) -> float:
@@ -381,17 +385,24 @@ def _visibility(work: _Work, radiance: F32, spot_meta: dict[str, dict[str, float
 
 
 def render_frame(condition_name: str, width: int, height: int,
-                 rng: np.random.Generator) -> Frame:
+                 rng: np.random.Generator, laser_free: bool = False) -> Frame:
     """Render one photograph of the named condition at this size (see the module docstring).
 
     Everything is drawn from ``rng``: the same generator state gives the same frame.
+    ``laser_free``: also capture it without the lasers' light (same noise draws), and give each
+    spot's ``visible_levels`` (:func:`visible_levels`) in ``meta["spots"]``.
     """
     work = _plan(condition_name, width, height, rng)
     radiance, settings, albedo_at = _exposed_scene(work, rng)
     crops, spot_meta = spot_crops(work.cond, work.cam, work.lay, work.wat, albedo_at, settings, rng)
     truth = _visibility(work, radiance, spot_meta)
+    dark = (sensor.capture(radiance.copy(), settings, copy.deepcopy(rng), ())
+            if laser_free else None)
     image = sensor.capture(radiance, settings, rng, crops)
     del radiance
+    if dark is not None:
+        for m in spot_meta.values():
+            m["visible_levels"] = visible_levels(image, dark, m["truth_x"], m["truth_y"])
     rig = layout.rig_toml(work.lay.beams, spectra.color_name(work.wavelength), rng)
     lay, wat = work.lay, work.wat
     meta: dict[str, Any] = {
@@ -409,4 +420,15 @@ def render_frame(condition_name: str, width: int, height: int,
         "water_optics": water.describe(wat),
     }
     return Frame(image_rgb=image, camera_spec=optics.colmap_camera_spec(work.cam),
-                 rig_toml=rig, truth=truth, meta=meta)
+                 rig_toml=rig, truth=truth, meta=meta, image_laser_free_rgb=dark)
+
+
+def visible_levels(image: U8, laser_free: U8, x: float, y: float, radius: int = 3) -> float:
+    """How much a spot changes the photograph: the largest difference (8-bit levels, any
+    channel) between the image and its laser-free capture within ``radius`` px of (x, y)
+    (COLMAP pixels). The scene's texture varies by 2-10 levels between neighbouring pixels."""
+    col, row = int(math.floor(x)), int(math.floor(y))
+    win = (slice(max(0, row - radius), row + radius + 1),
+           slice(max(0, col - radius), col + radius + 1))
+    diff = np.abs(image[win].astype(np.int16) - laser_free[win].astype(np.int16))
+    return float(diff.max()) if diff.size else 0.0
