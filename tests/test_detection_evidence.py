@@ -10,7 +10,7 @@ import pytest
 
 from sfm_laserscale.detection import DetectionOptions, beam_polyline_px, detect_spots
 from sfm_laserscale.detection.beams import beam_samples, range_along_beam, scene_mask
-from sfm_laserscale.detection.joint import Option, choose, range_term
+from sfm_laserscale.detection.joint import Option, agreeing_leads, choose, range_term
 from sfm_laserscale.detection.score import UNMEASURED_UNCLIPPED, AddedLight, colour_evidence
 from sfm_laserscale.model import Camera
 from sfm_laserscale.report.overlays import draw_overlay, near_misses
@@ -66,6 +66,23 @@ def test_range_term_prefers_agreeing_ranges_but_keeps_a_floor() -> None:
     assert choose({"A": [Option(0, 0.2, 3.0)]}, 0.25) == {}
     both = choose({"A": [Option(7, 0.9, 3.0)], "B": [Option(7, 0.6, 3.0)]}, 0.25)
     assert list(both) == ["A"]
+
+
+def test_two_clutter_leads_do_not_set_the_range_of_the_others() -> None:
+    # C's and D's best candidates are clutter far along their bands (8-9 m), their own spots
+    # (near 3 m) second; A and B lead at 3 m. The median of A's others (3.1, 8, 9) would be
+    # 8 m and take A below min_score; the agreeing leads are A and B.
+    options = {"A": [Option(0, 0.6, 3.0)], "B": [Option(1, 0.7, 3.1)],
+               "C": [Option(2, 0.4, 8.0), Option(3, 0.35, 2.95)],
+               "D": [Option(4, 0.3, 9.0), Option(5, 0.3, 3.05)]}
+    chosen = choose(options, min_score=0.25)
+    assert {n: o.index for n, o in chosen.items()} == {"A": 0, "B": 1, "C": 3, "D": 5}
+    assert set(agreeing_leads({n: o[0] for n, o in options.items()})) == {"A", "B"}
+    # fewer than three leads, or no two that agree: all of them
+    two = {"A": Option(0, 0.6, 3.0), "C": Option(2, 0.4, 8.0)}
+    assert agreeing_leads(two) == two
+    apart = {**two, "D": Option(4, 0.3, 1.0)}
+    assert agreeing_leads(apart) == apart
 
 
 def test_whitened_clipped_core_taken_only_at_the_other_spots_range() -> None:

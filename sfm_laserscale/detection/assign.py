@@ -24,6 +24,7 @@ from sfm_laserscale.detection.candidates import Measure
 from sfm_laserscale.detection.joint import (
     CLIPPED_COLOUR,
     MAX_OPTIONS,
+    agreeing_leads,
     agrees,
     choose,
     laser_options,
@@ -143,9 +144,10 @@ def assign_calibrated(
     opts = {las.name: laser_options(las.name, scores[i], region, valid, MAX_OPTIONS)
             for i, las in enumerate(rig.lasers) if las.calibrated and las.name not in missing}
     picked = choose(opts, options.min_score)
-    lead = [(n, r[0]) for n, r in opts.items() if r and r[0].score >= options.min_score]
+    lead = agreeing_leads({n: r[0] for n, r in opts.items()
+                           if r and r[0].score >= options.min_score})
     for name, ranked in opts.items():  # every option's range term, as choose() used it
-        others = [o.range_m for n, o in lead if n != name]
+        others = [o.range_m for n, o in lead.items() if n != name]
         for o in ranked:
             valid[o.index].range_fit[name] = range_term(o.range_m, others)
     chosen: dict[str, int] = {}

@@ -7,7 +7,8 @@ end to its far end. Each candidate's position along its beam gives its range
 (:func:`~sfm_laserscale.detection.beams.range_along_beam`). Each laser's MAX_OPTIONS best
 candidates get the range term ``RANGE_FLOOR + (1 − RANGE_FLOOR)·exp(-½ (ln(r / r_ref) /
 RANGE_SIGMA_LN)²)``, r_ref the median range of the other lasers' best candidates (those
-reaching ``min_score`` on their own): the floor keeps a strong spot on a step of the relief (a
+reaching ``min_score`` on their own; of three or more, only the largest group that agrees,
+:func:`agreeing_leads`): the floor keeps a strong spot on a step of the relief (a
 scarp, a coral head) that disagrees with the others. A laser takes its best candidate by score ×
 range term when that reaches ``min_score``.
 
@@ -40,6 +41,8 @@ MAX_OPTIONS = 5
 RANGE_SIGMA_LN = 0.4
 #: the range term never falls below this (the seafloor may have steps: scarps, coral heads)
 RANGE_FLOOR = 0.35
+#: leads whose ranges agree within this (natural log) form the range reference
+LEAD_AGREEMENT_LN = 0.25
 #: candidates scoring below this are not considered at all
 MIN_CONSIDERED = 0.02
 #: colour term of a clipped core whose colour reads whitened, when its range agrees
@@ -93,6 +96,7 @@ def choose(options: dict[str, list[Option]], min_score: float) -> dict[str, Opti
     range of the other lasers' best-scoring candidates (those reaching ``min_score``), if it
     reaches ``min_score``; a candidate wanted by two lasers goes to the higher value."""
     lead = {n: opts[0] for n, opts in options.items() if opts and opts[0].score >= min_score}
+    lead = agreeing_leads(lead)
     picked: dict[str, tuple[Option, float]] = {}
     for name, opts in options.items():
         others = [o.range_m for n, o in lead.items() if n != name]
@@ -105,6 +109,26 @@ def choose(options: dict[str, list[Option]], min_score: float) -> dict[str, Opti
         if all(c.index != o.index for c in chosen.values()):
             chosen[name] = o
     return {**chosen, **rescued(options, chosen, min_score)}
+
+
+def agreeing_leads(lead: dict[str, Option]) -> dict[str, Option]:
+    """The leading candidates whose ranges agree: with three or more leads, the largest group
+    within LEAD_AGREEMENT_LN of one of them (ties: the higher total score), when it holds at
+    least two. One wrong lead moves a median of two or three; two clutter leads (the lasers'
+    own spots whitened, below ``min_score`` on their own) would pull every true spot's range
+    term to its floor and leave the frame without a spot."""
+    finite = {n: o for n, o in lead.items() if math.isfinite(o.range_m)}
+    if len(finite) < 3:
+        return lead
+    best: list[str] = []
+    best_key = (0, 0.0)
+    for o in finite.values():
+        members = [m for m, p in finite.items()
+                   if abs(math.log(p.range_m / o.range_m)) <= LEAD_AGREEMENT_LN]
+        key = (len(members), sum(finite[m].score for m in members))
+        if key > best_key:
+            best, best_key = members, key
+    return {n: lead[n] for n in best} if len(best) >= 2 else lead
 
 
 def rescued(options: dict[str, list[Option]], chosen: dict[str, Option], min_score: float
