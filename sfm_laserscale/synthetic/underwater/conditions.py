@@ -20,7 +20,6 @@ The table of conditions is :data:`CONDITIONS` (name -> :class:`Condition`).
 
 from __future__ import annotations
 
-import copy
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -396,7 +395,7 @@ def render_frame(condition_name: str, width: int, height: int,
     radiance, settings, albedo_at = _exposed_scene(work, rng)
     crops, spot_meta = spot_crops(work.cond, work.cam, work.lay, work.wat, albedo_at, settings, rng)
     truth = _visibility(work, radiance, spot_meta)
-    dark = (sensor.capture(radiance.copy(), settings, copy.deepcopy(rng), ())
+    dark = (sensor.capture(radiance.copy(), settings, _same_draws(rng), ())
             if laser_free else None)
     image = sensor.capture(radiance, settings, rng, crops)
     del radiance
@@ -421,6 +420,13 @@ def render_frame(condition_name: str, width: int, height: int,
     }
     return Frame(image_rgb=image, camera_spec=optics.colmap_camera_spec(work.cam),
                  rig_toml=rig, truth=truth, meta=meta, image_laser_free_rgb=dark)
+
+
+def _same_draws(rng: np.random.Generator) -> np.random.Generator:
+    """A generator that will draw what ``rng`` draws next (``rng`` itself untouched)."""
+    bit = type(rng.bit_generator)()
+    bit.state = rng.bit_generator.state
+    return np.random.Generator(bit)
 
 
 def visible_levels(image: U8, laser_free: U8, x: float, y: float, radius: int = 3) -> float:
