@@ -186,10 +186,10 @@ def summarise(records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def _visible_misses(misses: list[dict[str, Any]]) -> int | None:
-    """How many misses change the photograph by VISIBLE_LEVELS or more at the spot (None when
-    the run had no laser-free captures)."""
+    """How many misses change the photograph by VISIBLE_LEVELS or more at the spot (None
+    without misses, or when the run had no laser-free captures)."""
     levels = [m.get("visible_levels") for m in misses]
-    if any(v is None for v in levels):
+    if not levels or any(v is None for v in levels):
         return None
     return sum(1 for v in levels if v is not None and v >= VISIBLE_LEVELS)
 
