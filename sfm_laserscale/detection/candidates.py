@@ -272,12 +272,14 @@ def _measure_second_look(out: list[Measure], m: Measure, rc: tuple[int, int], pl
                          src: _Source, bright_plane: F32 | None, options: DetectionOptions,
                          region: SearchRegion) -> None:
     """In place: measure a maximum below the clutter gate; it stays out of the first choice
-    (``rejected`` keeps the gate's reason) and is marked ``second_look`` when it measured."""
+    (``rejected`` keeps the gate's reason, and the test it then failed) and is marked
+    ``second_look`` when it measured."""
     m.rejected = None
     _measure(planes, m, src.plane, bright_plane, rc, options, region.max_radius)
-    m.second_look = m.rejected is None and _covering(out, m.x, m.y) is None
-    m.rejected = (f"{WEAKER_THAN_SCENE} (response {m.clutter_ratio:.2f} × clutter level; "
-                  "taken only at the range of the other lasers' spots)")
+    failed = m.rejected or _covering(out, m.x, m.y)
+    m.second_look = failed is None
+    then = f"and {failed}" if failed else "taken only at the range of the other lasers' spots"
+    m.rejected = f"{WEAKER_THAN_SCENE} (response {m.clutter_ratio:.2f} × clutter level; {then})"
 
 
 def _better_of_the_two(out: list[Measure], m: Measure, rc: tuple[int, int], planes: Planes,
