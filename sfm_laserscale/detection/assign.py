@@ -24,10 +24,10 @@ from sfm_laserscale.detection.candidates import Measure
 from sfm_laserscale.detection.joint import (
     CLIPPED_COLOUR,
     MAX_OPTIONS,
-    agreeing_leads,
     agrees,
     choose,
     laser_options,
+    leads,
     range_term,
 )
 from sfm_laserscale.detection.options import DetectionOptions
@@ -144,8 +144,7 @@ def assign_calibrated(
     opts = {las.name: laser_options(las.name, scores[i], region, valid, MAX_OPTIONS)
             for i, las in enumerate(rig.lasers) if las.calibrated and las.name not in missing}
     picked = choose(opts, options.min_score)
-    lead = agreeing_leads({n: r[0] for n, r in opts.items()
-                           if r and r[0].score >= options.min_score})
+    lead = leads(opts, options.min_score)
     for name, ranked in opts.items():  # every option's range term, as choose() used it
         others = [o.range_m for n, o in lead.items() if n != name]
         for o in ranked:
@@ -186,11 +185,11 @@ def second_look(rig: Rig, region: SearchRegion, measures: list[Measure], valid: 
     for las in rig.lasers:
         if not pool or ref is None or las.name in chosen or not las.calibrated:
             continue
-        fits = [(v, m) for m in pool if las.color in ("any", m.color)
-                and (v := _second_look_value(m, las.name, region, ref, options)) > 0.0]
+        fits = [(vb, m) for m in pool if las.color in ("any", m.color)
+                and (vb := _second_look_value(m, las.name, region, ref, options))[0] > 0.0]
         if fits:
-            value, m = max(fits, key=lambda vm: vm[0])
-            _take_second_look(m, las.name, value, region)
+            (value, beam), m = max(fits, key=lambda f: f[0][0])
+            _take_second_look(m, las.name, value, beam)
             valid.append(m)
             taken[las.name] = len(valid) - 1
             pool.remove(m)
@@ -208,28 +207,28 @@ def _chosen_range(region: SearchRegion, valid: list[Measure], chosen: dict[str, 
 
 
 def _second_look_value(m: Measure, name: str, region: SearchRegion, ref_m: float,
-                       options: DetectionOptions) -> float:
-    """Score of a second-look maximum for a laser, 0 when it does not qualify."""
+                       options: DetectionOptions) -> tuple[float, float]:
+    """(score, beam term) of a second-look maximum for a laser; score 0 when it does not
+    qualify."""
     line = region.polylines[name]
     if len(line) == 0 or m.colour.term < LIT_COLOUR:
-        return 0.0
+        return 0.0, 0.0
     xy = np.array([[m.x, m.y]])
     dist = float(distance_to_polyline(xy, line)[0])
     if dist > region.band_px:
-        return 0.0
+        return 0.0, 0.0
     if not agrees(float(range_along_beam(xy, line, region.ranges[name])[0]), ref_m):
-        return 0.0
+        return 0.0, 0.0
     terms = {**m.terms, "clutter": CLUTTER_AT_RANGE}
     beam = float(beam_term(np.array([dist]), region.band_px)[0])
     value = float(np.prod(list(terms.values()))) * m.colour.term * beam
-    return value if value >= options.min_score else 0.0
+    return (value, beam) if value >= options.min_score else (0.0, 0.0)
 
 
-def _take_second_look(m: Measure, name: str, value: float, region: SearchRegion) -> None:
-    """In place: a second-look maximum becomes laser ``name``'s spot."""
-    dist = float(distance_to_polyline(np.array([[m.x, m.y]]), region.polylines[name])[0])
+def _take_second_look(m: Measure, name: str, value: float, beam: float) -> None:
+    """In place: a second-look maximum becomes laser ``name``'s spot (``beam``: its term)."""
     m.terms["clutter"] = CLUTTER_AT_RANGE
-    m.evidence = evidence(m, float(beam_term(np.array([dist]), region.band_px)[0]), name)
+    m.evidence = evidence(m, beam, name)
     m.rejected, m.laser, m.score = None, name, value
     m.reason = (f"assigned to {name}: below the clutter gate ({m.clutter_ratio:.2f} × clutter "
                 "level), laser-coloured, at the range of the other lasers' spots")

@@ -95,8 +95,7 @@ def choose(options: dict[str, list[Option]], min_score: float) -> dict[str, Opti
     """Laser -> chosen option: each laser's best by score × range term against the median
     range of the other lasers' best-scoring candidates (those reaching ``min_score``), if it
     reaches ``min_score``; a candidate wanted by two lasers goes to the higher value."""
-    lead = {n: opts[0] for n, opts in options.items() if opts and opts[0].score >= min_score}
-    lead = agreeing_leads(lead)
+    lead = leads(options, min_score)
     picked: dict[str, tuple[Option, float]] = {}
     for name, opts in options.items():
         others = [o.range_m for n, o in lead.items() if n != name]
@@ -109,6 +108,13 @@ def choose(options: dict[str, list[Option]], min_score: float) -> dict[str, Opti
         if all(c.index != o.index for c in chosen.values()):
             chosen[name] = o
     return {**chosen, **rescued(options, chosen, min_score)}
+
+
+def leads(options: dict[str, list[Option]], min_score: float) -> dict[str, Option]:
+    """The range reference's candidates: each laser's best reaching ``min_score`` on its own,
+    of those the ones that agree (:func:`agreeing_leads`)."""
+    return agreeing_leads({n: opts[0] for n, opts in options.items()
+                           if opts and opts[0].score >= min_score})
 
 
 def agreeing_leads(lead: dict[str, Option]) -> dict[str, Option]:
