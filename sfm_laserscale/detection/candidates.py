@@ -50,7 +50,7 @@ from sfm_laserscale.detection.score import (
     colour_evidence,
     contrast_term,
 )
-from sfm_laserscale.detection.shape import TOO_LARGE, Blob, shape_and_contrast
+from sfm_laserscale.detection.shape import Blob, shape_and_contrast
 
 F32 = NDArray[np.float32]
 #: half-maximum radius (px) up to which a clipped core's rim is within the reach of demosaicing
@@ -139,14 +139,18 @@ def _sources(channels: Channels, planes: Planes, options: DetectionOptions,
     return out
 
 
-def _covering(out: list[Measure], x: float, y: float) -> str | None:
-    """Why a maximum at (x, y) repeats an earlier one: inside a too-large blob or a spot."""
+def _covering(out: list[Measure], m: Measure, origin: tuple[int, int]) -> str | None:
+    """Why maximum ``m`` repeats an earlier candidate, or None (``origin``: the crop's corner,
+    so the reason names image pixels).
+
+    A maximum inside a too-large blob's half-maximum region is not a repeat: a far spot at the
+    end of its beam's in-water glow, or on the flank of a bright patch, is a maximum of its own
+    there, and its own shape test decides.
+    """
     for o in out:
-        d = math.hypot(o.x - x, o.y - y)
-        if o.rejected is None and d < max(2.0, o.radius_px):
-            return f"duplicate of the stronger maximum at ({o.x:.1f}, {o.y:.1f})"
-        if o.rejected is not None and o.rejected.startswith(TOO_LARGE) and d < o.radius_px:
-            return f"part of the too-large blob at ({o.x:.1f}, {o.y:.1f})"
+        if o.rejected is None and math.hypot(o.x - m.x, o.y - m.y) < max(2.0, o.radius_px):
+            return (f"duplicate of the stronger maximum at ({o.x + origin[0]:.1f}, "
+                    f"{o.y + origin[1]:.1f})")
     return None
 
 
@@ -238,13 +242,13 @@ def candidates_for_colour(
             m = Measure(x=col + 0.5, y=row + 0.5, color=color, source=src.name, response=value,
                         clutter_ratio=value / src.clutter if src.clutter > 0 else math.inf)
             m.rejected = (_unmeasured_reason(m, rc, src, region, n_valid, options)
-                          or _covering(out, m.x, m.y))
+                          or _covering(out, m, region.roi[:2]))
             if n_second < SECOND_LOOK_MAX and _second_look(m, rc, region, options):
                 n_second += 1
                 _measure_second_look(out, m, rc, planes, src, bright_plane, options, region)
             elif m.rejected is None:
                 _measure(planes, m, src.plane, bright_plane, rc, options, region.max_radius)
-                m.rejected = m.rejected or _covering(out, m.x, m.y)
+                m.rejected = m.rejected or _covering(out, m, region.roi[:2])
                 n_valid += m.rejected is None
             if src.name == "bright" and m.rejected is not None and m.rejected.startswith("dup"):
                 _better_of_the_two(out, m, rc, planes, src, bright_plane, options, region)
@@ -276,7 +280,7 @@ def _measure_second_look(out: list[Measure], m: Measure, rc: tuple[int, int], pl
     ``second_look`` when it measured."""
     m.rejected = None
     _measure(planes, m, src.plane, bright_plane, rc, options, region.max_radius)
-    failed = m.rejected or _covering(out, m.x, m.y)
+    failed = m.rejected or _covering(out, m, region.roi[:2])
     m.second_look = failed is None
     then = f"and {failed}" if failed else "taken only at the range of the other lasers' spots"
     m.rejected = f"{WEAKER_THAN_SCENE} (response {m.clutter_ratio:.2f} × clutter level; {then})"
