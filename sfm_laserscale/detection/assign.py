@@ -43,6 +43,8 @@ LIT_COLOUR = 0.7
 DEPTH = 0.1
 #: "farther" means beyond this fraction of the candidate's own range
 DEPTH_MARGIN = 0.05
+#: … and counts only with at least this fraction of the candidate's own evidence
+DEPTH_EVIDENCE = 0.5
 #: clutter term of a maximum below the clutter gate taken at the other spots' range
 CLUTTER_AT_RANGE = 1.0
 
@@ -86,21 +88,25 @@ def _lit(m: Measure, beam: float, options: DetectionOptions) -> bool:
 
 def _mark_depth(las_name: str, i: int, region: SearchRegion, valid: list[Measure], dist: F64,
                 beam: F64, options: DetectionOptions) -> None:
-    """In place: candidates of a beam with laser light farther along it get ``depth`` DEPTH.
+    """In place: candidates of a beam with laser light at least as strong farther along it get
+    ``depth`` DEPTH.
 
     A beam lights nothing beyond the first surface it meets: laser-coloured light nearer than
     other laser light on the same beam is a particle lit in the water, or the beam's glow.
-    Light nearer to another beam's line does not count.
+    Light nearer to another beam's line does not count, nor weaker light: a laser-coloured
+    speck of the scene farther along a band is no reason to doubt a stronger spot.
     """
     admissible = [j for j in range(len(valid)) if dist[i, j] <= region.band_px]
     if len(admissible) < 2:
         return
     xy = np.array([[valid[j].x, valid[j].y] for j in admissible])
     rng = range_along_beam(xy, region.polylines[las_name], region.ranges[las_name])
+    score = [_score(valid[j], float(beam[j])) for j in admissible]
     own = [k for k, j in enumerate(admissible)
            if dist[i, j] <= dist[:, j].min() and _lit(valid[j], float(beam[j]), options)]
-    far = max((rng[k] for k in own), default=-math.inf)
     for k, j in enumerate(admissible):
+        far = max((rng[q] for q in own if score[q] >= DEPTH_EVIDENCE * score[k]),
+                  default=-math.inf)
         if far > rng[k] * (1.0 + DEPTH_MARGIN):
             valid[j].depth[las_name] = DEPTH
 

@@ -1,6 +1,10 @@
-"""Far spots beside their beams' in-water glow, on frames of the independent physical
-generator: a maximum of its own within a too-large blob's radius is measured, not dropped as
-part of that blob; and the reasons name positions in image pixels."""
+"""What else lies along a beam, on frames of the independent physical generator.
+
+A far spot beside its beam's in-water glow: a maximum of its own within a too-large blob's
+radius is measured, not dropped as part of that blob. A weak laser-coloured speck of the scene
+farther along a band does not mark a strong spot as 'lit in the water'. Reasons name positions
+in image pixels.
+"""
 
 from __future__ import annotations
 
@@ -17,9 +21,9 @@ from sfm_laserscale.rig import rig_from_dict
 from sfm_laserscale.synthetic.underwater import CONDITIONS, Frame, render_frame
 
 
-def _frame(condition: str, index: int) -> tuple[Frame, DetectionResult]:
+def _frame(condition: str, index: int, seed: int = 0) -> tuple[Frame, DetectionResult]:
     ci = list(CONDITIONS).index(condition)
-    frame = render_frame(condition, 1920, 1080, np.random.default_rng([0, ci, 0, index]))
+    frame = render_frame(condition, 1920, 1080, np.random.default_rng([seed, ci, 0, index]))
     rig = rig_from_dict(tomllib.loads(frame.rig_toml))
     return frame, detect_spots(frame.image_rgb, parse_camera(frame.camera_spec), rig)
 
@@ -56,3 +60,17 @@ def test_reasons_name_positions_in_image_pixels() -> None:
         # (a separate refinement of overlapping spots may move it afterwards, measured 0.6 px;
         # the searched crop's corner was hundreds of px off)
         assert min(math.hypot(c.x - x, c.y - y) for c in res.candidates) < 1.0, (x, y)
+
+
+def test_a_weaker_speck_farther_along_the_beam_does_not_veto_a_strong_spot() -> None:
+    """blue_beams, seed 1, frame 4: a laser-coloured speck 90 px farther along L1's band (its
+    evidence under half the spot's) used to mark L1's spot (SNR 347) as light nearer than the
+    laser's own on its beam (depth 0.1), and L1 had no spot."""
+    frame, res = _frame("blue_beams", 4, seed=1)
+    got = {s.laser: s for s in res.spots}
+    assert set(got) == {"L1", "L2", "L3", "L4"}, res.missing
+    for name, s in got.items():
+        truth = frame.truth[name]
+        assert truth is not None and math.dist((s.x, s.y), truth) < 0.5
+    spot = [c for c in res.candidates if c.laser == "L1"][0]
+    assert dict(spot.evidence)["depth"] == 1.0
