@@ -1,8 +1,9 @@
 """What else lies along a beam, on frames of the independent physical generator.
 
 A far spot beside its beam's in-water glow: a maximum of its own within a too-large blob's
-radius is measured, not dropped as part of that blob. A weak laser-coloured speck of the scene
-farther along a band does not mark a strong spot as 'lit in the water'. Reasons name positions
+radius is measured, not dropped as part of that blob. Of two laser lights on one beam the nearer
+is a particle lit in the water, unless the other beams' spots sit at its range: then the
+farther one is a laser-coloured speck of the scene. Reasons name positions
 in image pixels.
 """
 
@@ -62,15 +63,29 @@ def test_reasons_name_positions_in_image_pixels() -> None:
         assert min(math.hypot(c.x - x, c.y - y) for c in res.candidates) < 1.0, (x, y)
 
 
-def test_a_weaker_speck_farther_along_the_beam_does_not_veto_a_strong_spot() -> None:
-    """blue_beams, seed 1, frame 4: a laser-coloured speck 90 px farther along L1's band (its
-    evidence under half the spot's) used to mark L1's spot (SNR 347) as light nearer than the
-    laser's own on its beam (depth 0.1), and L1 had no spot."""
-    frame, res = _frame("blue_beams", 4, seed=1)
+def _all_four_found(frame: Frame, res: DetectionResult) -> None:
     got = {s.laser: s for s in res.spots}
     assert set(got) == {"L1", "L2", "L3", "L4"}, res.missing
     for name, s in got.items():
         truth = frame.truth[name]
-        assert truth is not None and math.dist((s.x, s.y), truth) < 0.5
+        assert truth is not None and math.dist((s.x, s.y), truth) < 0.5, name
+
+
+def test_a_speck_farther_along_the_beam_does_not_veto_the_spot_at_the_others_range() -> None:
+    """blue_beams, seed 1, frame 4: a laser-coloured speck 90 px farther along L1's band used
+    to mark L1's spot (SNR 347, at the other three spots' range) as light nearer than the
+    laser's own on its beam (depth 0.1), and L1 had no spot."""
+    frame, res = _frame("blue_beams", 4, seed=1)
+    _all_four_found(frame, res)
     spot = [c for c in res.candidates if c.laser == "L1"][0]
     assert dict(spot.evidence)["depth"] == 1.0
+
+
+def test_a_particle_lit_nearer_on_the_beam_is_still_vetoed_by_the_spot_behind_it() -> None:
+    """marine_snow, seed 0, frame 9: a particle lit by L2's beam has more evidence than L2's
+    spot on the floor behind it (more than twice: a rule that let weaker far light not count
+    took the particle, 180 px from the spot); the spot's range agrees with the other spots'."""
+    frame, res = _frame("marine_snow", 9)
+    _all_four_found(frame, res)
+    assert any(c.evidence and dict(c.evidence)["depth"] < 1.0 and c.laser is None
+               for c in res.candidates)

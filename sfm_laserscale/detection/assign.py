@@ -43,8 +43,6 @@ LIT_COLOUR = 0.7
 DEPTH = 0.1
 #: "farther" means beyond this fraction of the candidate's own range
 DEPTH_MARGIN = 0.05
-#: … and counts only with at least this fraction of the candidate's own evidence
-DEPTH_EVIDENCE = 0.5
 #: clutter term of a maximum below the clutter gate taken at the other spots' range
 CLUTTER_AT_RANGE = 1.0
 
@@ -87,28 +85,46 @@ def _lit(m: Measure, beam: float, options: DetectionOptions) -> bool:
 
 
 def _mark_depth(las_name: str, i: int, region: SearchRegion, valid: list[Measure], dist: F64,
-                beam: F64, options: DetectionOptions) -> None:
-    """In place: candidates of a beam with laser light at least as strong farther along it get
-    ``depth`` DEPTH.
+                beam: F64, others_m: list[float], options: DetectionOptions) -> None:
+    """In place: candidates of a beam with laser light farther along it get ``depth`` DEPTH.
 
     A beam lights nothing beyond the first surface it meets: laser-coloured light nearer than
     other laser light on the same beam is a particle lit in the water, or the beam's glow.
-    Light nearer to another beam's line does not count, nor weaker light: a laser-coloured
-    speck of the scene farther along a band is no reason to doubt a stronger spot.
+    Light nearer to another beam's line does not count. Nor does farther light whose range
+    agrees less than the candidate's with ``others_m`` (m: the ranges of the other beams' laser
+    light): then the other beams' spots sit at the candidate's range, and the farther light is
+    a laser-coloured speck of the scene, not this beam's end.
     """
     admissible = [j for j in range(len(valid)) if dist[i, j] <= region.band_px]
     if len(admissible) < 2:
         return
     xy = np.array([[valid[j].x, valid[j].y] for j in admissible])
     rng = range_along_beam(xy, region.polylines[las_name], region.ranges[las_name])
-    score = [_score(valid[j], float(beam[j])) for j in admissible]
     own = [k for k, j in enumerate(admissible)
            if dist[i, j] <= dist[:, j].min() and _lit(valid[j], float(beam[j]), options)]
+    ref = float(np.median(others_m)) if others_m else None
+
+    def off(r: float) -> float:
+        return abs(math.log(r / ref)) if ref is not None else 0.0
+
     for k, j in enumerate(admissible):
-        far = max((rng[q] for q in own if score[q] >= DEPTH_EVIDENCE * score[k]),
-                  default=-math.inf)
-        if far > rng[k] * (1.0 + DEPTH_MARGIN):
+        far = [q for q in own if rng[q] > rng[k] * (1.0 + DEPTH_MARGIN)]
+        if any(ref is None or off(rng[q]) <= off(rng[k]) for q in far):
             valid[j].depth[las_name] = DEPTH
+
+
+def _lit_range(i: int, las_name: str, region: SearchRegion, valid: list[Measure], dist: F64,
+               options: DetectionOptions) -> float | None:
+    """Range (m) along beam ``i`` of its strongest laser light (:func:`_lit`, nearest this beam
+    of all), or None."""
+    beam = beam_term(dist[i], region.band_px)
+    lit = [j for j in range(len(valid)) if dist[i, j] <= region.band_px
+           and dist[i, j] <= dist[:, j].min() and _lit(valid[j], float(beam[j]), options)]
+    if not lit:
+        return None
+    best = max(lit, key=lambda j: _score(valid[j], float(beam[j])))
+    xy = np.array([[valid[best].x, valid[best].y]])
+    return float(range_along_beam(xy, region.polylines[las_name], region.ranges[las_name])[0])
 
 
 def _laser_costs(
@@ -129,11 +145,13 @@ def _laser_costs(
                                 "is outside the image")
             continue
         dist[i] = distance_to_polyline(xy, line) if len(valid) else dist[i]
-    for i, las in enumerate(rig.lasers):
-        if not np.isfinite(dist[i]).any():
-            continue
+    seen = [i for i in range(len(rig.lasers)) if np.isfinite(dist[i]).any()]
+    lit_m = {i: _lit_range(i, rig.lasers[i].name, region, valid, dist, options) for i in seen}
+    for i in seen:
+        las = rig.lasers[i]
         beam = beam_term(dist[i], band)
-        _mark_depth(las.name, i, region, valid, dist, beam, options)
+        others_m = [r for k, r in lit_m.items() if k != i and r is not None]
+        _mark_depth(las.name, i, region, valid, dist, beam, others_m, options)
         for j, m in enumerate(valid):
             if dist[i, j] <= band and las.color in ("any", m.color):
                 cost[i, j] = -math.log(max(single_score(m, float(beam[j]), las.name), 1e-12))
