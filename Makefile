@@ -25,7 +25,7 @@ lint: install
 	$(BIN)/ruff check sfm_laserscale tests scripts plugins
 
 typecheck: install
-	$(BIN)/mypy sfm_laserscale
+	$(BIN)/mypy sfm_laserscale scripts
 
 # two pytest workers (pytest-xdist): the suite is mostly single-threaded, and CI has 2 cores
 unit: install

@@ -97,7 +97,8 @@ def score_frame(frame: Frame, result: Any) -> dict[str, Any]:
         truth = truths.get(laser)
         for spot in spots:
             err = math.hypot(spot.x - truth[0], spot.y - truth[1]) if truth else math.inf
-            if err <= MATCH_PX and not any(f["laser"] == laser for f in found):
+            if truth is not None and err <= MATCH_PX and not any(
+                    f["laser"] == laser for f in found):
                 found.append({"laser": laser, "error_px": err, "dx": spot.x - truth[0],
                               "dy": spot.y - truth[1], "score": spot.score,
                               "sigma_px": spot.sigma_px})
