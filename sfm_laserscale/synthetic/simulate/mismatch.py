@@ -346,11 +346,12 @@ def setting_stats(results: Sequence[SurveyResult], truth: float) -> dict[str, An
     checks = [k for k in flags if k != "birge"]
     cv, cs = np.array([r.corrected for r in results]), np.array([r.corrected_std for r in results])
     ok = np.isfinite(cv) & np.isfinite(cs)
+    spread = float(np.std(e, ddof=1)) if len(e) > 1 else float("nan")  # one survey: no spread
     return {
         "n": len(results),
-        "bias_pct": 100 * float(np.mean(e)), "std_pct": 100 * float(np.std(e, ddof=1)),
+        "bias_pct": 100 * float(np.mean(e)), "std_pct": 100 * spread,
         "sigma_pct": 100 * float(np.mean(s / truth)),
-        "ratio": float(np.std(e, ddof=1) / np.mean(s / truth)),
+        "ratio": spread / float(np.mean(s / truth)),
         "z_rms": float(np.sqrt(np.mean(z**2))),
         "coverage95": float(np.mean((lo <= truth) & (truth <= hi))),
         "flag_rates": flags,
