@@ -85,46 +85,48 @@ def _lit(m: Measure, beam: float, options: DetectionOptions) -> bool:
 
 
 def _mark_depth(las_name: str, i: int, region: SearchRegion, valid: list[Measure], dist: F64,
-                beam: F64, others_m: list[float], options: DetectionOptions) -> None:
+                lit: list[int], others_m: list[float]) -> None:
     """In place: candidates of a beam with laser light farther along it get ``depth`` DEPTH.
 
     A beam lights nothing beyond the first surface it meets: laser-coloured light nearer than
     other laser light on the same beam is a particle lit in the water, or the beam's glow.
-    Light nearer to another beam's line does not count. Nor does farther light whose range
-    agrees less than the candidate's with ``others_m`` (m: the ranges of the other beams' laser
-    light): then the other beams' spots sit at the candidate's range, and the farther light is
-    a laser-coloured speck of the scene, not this beam's end.
+    ``lit``: indices into ``valid`` of this beam's laser light (:func:`_beam_light`; light
+    nearer to another beam's line does not count). Nor does farther light whose range agrees
+    less than the candidate's with ``others_m`` (m: the ranges of the other beams' strongest
+    laser light): then the other beams' spots sit at the candidate's range, and the farther
+    light is a laser-coloured speck of the scene, not this beam's end.
     """
     admissible = [j for j in range(len(valid)) if dist[i, j] <= region.band_px]
-    if len(admissible) < 2:
+    if len(admissible) < 2 or not lit:
         return
-    xy = np.array([[valid[j].x, valid[j].y] for j in admissible])
+    xy = np.array([[valid[j].x, valid[j].y] for j in admissible + lit])
     rng = range_along_beam(xy, region.polylines[las_name], region.ranges[las_name])
-    own = [k for k, j in enumerate(admissible)
-           if dist[i, j] <= dist[:, j].min() and _lit(valid[j], float(beam[j]), options)]
+    lit_m = rng[len(admissible):]
     ref = float(np.median(others_m)) if others_m else None
 
     def off(r: float) -> float:
         return abs(math.log(r / ref)) if ref is not None else 0.0
 
     for k, j in enumerate(admissible):
-        far = [q for q in own if rng[q] > rng[k] * (1.0 + DEPTH_MARGIN)]
-        if any(ref is None or off(rng[q]) <= off(rng[k]) for q in far):
+        far = [r for r in lit_m if r > rng[k] * (1.0 + DEPTH_MARGIN)]
+        if any(ref is None or off(r) <= off(rng[k]) for r in far):
             valid[j].depth[las_name] = DEPTH
 
 
-def _lit_range(i: int, las_name: str, region: SearchRegion, valid: list[Measure], dist: F64,
-               options: DetectionOptions) -> float | None:
-    """Range (m) along beam ``i`` of its strongest laser light (:func:`_lit`, nearest this beam
-    of all), or None."""
+def _range_m(m: Measure, las_name: str, region: SearchRegion) -> float:
+    """Range (m) along a laser's beam of a candidate's position."""
+    xy = np.array([[m.x, m.y]])
+    return float(range_along_beam(xy, region.polylines[las_name], region.ranges[las_name])[0])
+
+
+def _beam_light(i: int, region: SearchRegion, valid: list[Measure], dist: F64,
+                options: DetectionOptions) -> list[int]:
+    """Indices into ``valid`` of beam ``i``'s laser light (:func:`_lit`, in its band and
+    nearer its line than any other beam's), strongest first."""
     beam = beam_term(dist[i], region.band_px)
     lit = [j for j in range(len(valid)) if dist[i, j] <= region.band_px
            and dist[i, j] <= dist[:, j].min() and _lit(valid[j], float(beam[j]), options)]
-    if not lit:
-        return None
-    best = max(lit, key=lambda j: _score(valid[j], float(beam[j])))
-    xy = np.array([[valid[best].x, valid[best].y]])
-    return float(range_along_beam(xy, region.polylines[las_name], region.ranges[las_name])[0])
+    return sorted(lit, key=lambda j: -_score(valid[j], float(beam[j])))
 
 
 def _laser_costs(
@@ -146,12 +148,14 @@ def _laser_costs(
             continue
         dist[i] = distance_to_polyline(xy, line) if len(valid) else dist[i]
     seen = [i for i in range(len(rig.lasers)) if np.isfinite(dist[i]).any()]
-    lit_m = {i: _lit_range(i, rig.lasers[i].name, region, valid, dist, options) for i in seen}
+    lit = {i: _beam_light(i, region, valid, dist, options) for i in seen}
+    strongest_m = {i: _range_m(valid[js[0]], rig.lasers[i].name, region)
+                   for i, js in lit.items() if js}
     for i in seen:
         las = rig.lasers[i]
         beam = beam_term(dist[i], band)
-        others_m = [r for k, r in lit_m.items() if k != i and r is not None]
-        _mark_depth(las.name, i, region, valid, dist, beam, others_m, options)
+        others_m = [r for k, r in strongest_m.items() if k != i]
+        _mark_depth(las.name, i, region, valid, dist, lit[i], others_m)
         for j, m in enumerate(valid):
             if dist[i, j] <= band and las.color in ("any", m.color):
                 cost[i, j] = -math.log(max(single_score(m, float(beam[j]), las.name), 1e-12))
@@ -223,8 +227,7 @@ def second_look(rig: Rig, region: SearchRegion, measures: list[Measure], valid: 
 def _chosen_range(region: SearchRegion, valid: list[Measure], chosen: dict[str, int]
                   ) -> float | None:
     """Median range (m) of the chosen spots of calibrated lasers, or None without any."""
-    ranges = [float(range_along_beam(np.array([[valid[j].x, valid[j].y]]),
-                                     region.polylines[name], region.ranges[name])[0])
+    ranges = [_range_m(valid[j], name, region)
               for name, j in chosen.items() if len(region.polylines.get(name, ())) > 0]
     finite = [r for r in ranges if math.isfinite(r)]
     return float(np.median(finite)) if finite else None
