@@ -318,8 +318,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                                         "images": records}, indent=1, default=str))
     if args.markdown:
         print(markdown_table(rows))
-    if (line := visibility_line(rows)) is not None:
-        print(line)
     else:
         for r in rows:
             print(f"{r['condition']:16s} {r['size']:>9s}  found {_fmt(r['found_pct'], 1):>5s} %"
@@ -328,6 +326,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                   f"  max {_fmt(r['max_px'])} px  det {_fmt(r['detect_s_per_image'])} s")
             for kind, n in r["miss_reasons"][:3]:
                 print(f"{'':28s}{n:3d}x {kind}")
+    if (line := visibility_line(rows)) is not None:
+        print(line)
     print(f"{len(records)} images in {elapsed:.0f} s", file=sys.stderr)
     return 0
 

@@ -244,7 +244,7 @@ def _second_look_value(m: Measure, name: str, region: SearchRegion, ref_m: float
     dist = float(distance_to_polyline(xy, line)[0])
     if dist > region.band_px:
         return 0.0, 0.0
-    if not agrees(float(range_along_beam(xy, line, region.ranges[name])[0]), ref_m):
+    if not agrees(_range_m(m, name, region), ref_m):
         return 0.0, 0.0
     terms = {**m.terms, "clutter": CLUTTER_AT_RANGE}
     beam = float(beam_term(np.array([dist]), region.band_px)[0])
