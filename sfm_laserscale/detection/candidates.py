@@ -45,9 +45,8 @@ from sfm_laserscale.detection.response import (
 )
 from sfm_laserscale.detection.score import (
     ColourEvidence,
-    added_light,
     clutter_term,
-    colour_evidence,
+    colour_around,
     contrast_term,
 )
 from sfm_laserscale.detection.shape import Blob, shape_and_contrast
@@ -58,8 +57,6 @@ F32 = NDArray[np.float32]
 WHITENED_MAX_RADIUS = 3.0
 #: … when its colour term is below this
 WHITENED_MAX_COLOUR = 0.5
-#: a brightness maximum this close (px) to a colour candidate is the same maximum
-SAME_MAXIMUM_PX = 1.0
 #: maxima below the clutter gate measured for the second look, per response
 SECOND_LOOK_MAX = 12
 WEAKER_THAN_SCENE = "no stronger than the scene's own blobs"
@@ -206,10 +203,9 @@ def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
     m.x, m.y = x, y
     m.sigma_px = sig
     if options.colour_evidence:
-        light = added_light(planes.channels, planes.clipped_laser, planes.clipped_any, x, y,
-                            m.radius_px, m.support_px)
-        m.colour = colour_evidence(light, CHANNELS[m.color], options.colour_tau,
-                                   clipped=m.bright)
+        m.colour = colour_around(planes.channels, planes.clipped_laser, planes.clipped_any,
+                                 (x, y), (m.radius_px, m.support_px), CHANNELS[m.color],
+                                 options.colour_tau, clipped=m.bright)
         m.whitened = (m.bright and m.colour.measured and m.colour.term < WHITENED_MAX_COLOUR
                       and m.radius_px <= WHITENED_MAX_RADIUS)
     else:
@@ -289,16 +285,18 @@ def _measure_second_look(out: list[Measure], m: Measure, rc: tuple[int, int], pl
 def _better_of_the_two(out: list[Measure], m: Measure, rc: tuple[int, int], planes: Planes,
                        src: _Source, bright_plane: F32 | None, options: DetectionOptions,
                        region: SearchRegion) -> None:
-    """In place: a brightness maximum ``m`` repeating a colour candidate at least
-    SAME_MAXIMUM_PX away is measured too, and replaces it when its evidence is stronger.
+    """In place: a brightness maximum ``m`` repeating a colour candidate is measured too, and
+    replaces it when its evidence is stronger.
 
     A clipped core reads white over green-cyan water: its colour response peaks on the green
     halo beside the core, its brightness at the core, so the colour candidate is measured off
-    the spot (2-3 px) and the spot itself was dropped as its duplicate.
+    the spot (2-3 px) and the spot itself was dropped as its duplicate. Where both peak on the
+    core, the two are still measured on different responses (the colour response of a core in
+    a glow line is wide and weak, its brightness compact), so the better one is kept there too.
     """
     near = [o for o in out if o.rejected is None and o.source == "colour"
             and math.hypot(o.x - m.x, o.y - m.y) < max(2.0, o.radius_px)]
-    if not near or math.hypot(near[0].x - m.x, near[0].y - m.y) < SAME_MAXIMUM_PX:
+    if not near:
         return
     o = near[0]
     m.rejected = None

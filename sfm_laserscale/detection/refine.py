@@ -14,7 +14,10 @@ minus a plane fitted on a ring outside the spot's support:
   texture's colour (:func:`spot_light`), so the texture cancels.
 
 Pixels where the signal is undetermined (clipped) inside the support are set to the highest
-determined value there (a flat top). The centre is a Gaussian-windowed centroid iterated to its
+determined value there (a flat top); for a luma-dominant laser such a spot's signal is taken above
+CLIPPED_CUT of that plateau (a thresholded centroid: a glow line or the luma texture beside the
+core does not pull its centre; red and blue spots, on the texture-free signal, only lost
+accuracy with it). The centre is a Gaussian-windowed centroid iterated to its
 fixed point (unbiased for any point-symmetric spot, saturated or not) or, optionally and for
 spots cut by the image border, a 2D Gaussian fit to the unclipped pixels. Overlapping spots are
 refined with each other's modelled light removed (:class:`NeighbourModel`).
@@ -232,14 +235,18 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
         if (_snr(sig_l, ring, inner & ~clipped)
                 >= LUMA_SNR_RATIO * _snr(sig, ring, inner & ~undetermined)):
             sig, undetermined = sig_l, clipped
+    noise = robust_std(sig[ring])
     top = inner & undetermined
     if top.any():
         ok = inner & ~undetermined
-        sig[top] = float(sig[ok].max()) if ok.any() else float(sig.max())
+        level = float(sig[ok].max()) if ok.any() else float(sig.max())
+        sig[top] = level
+        if allow_luma and luma_dominant(planes.laser_rgb):  # a neighbour's model keeps it all
+            sig = sig - CLIPPED_CUT * level
     h, w = planes.laser.shape
     cut = bool(x0 - support_px < 0 or y0 - support_px < 0 or x0 + support_px > w
                or y0 + support_px > h)
-    return SpotPatch(gx=gx, gy=gy, signal=sig, usable=~clipped, noise=robust_std(sig[ring]),
+    return SpotPatch(gx=gx, gy=gy, signal=sig, usable=~clipped, noise=noise,
                      support_px=support_px, cut=cut)
 
 
@@ -352,6 +359,10 @@ def refine_gaussian(
         return x, y, 1.0
     return x, y, math.sqrt(max(0.5 * (cov[1, 1] + cov[2, 2]), 0.0))
 
+
+#: a luma-dominant laser's clipped core is centred on its light above this fraction of its
+#: plateau (a glow line or the texture beside the core no longer pulls it off the plateau)
+CLIPPED_CUT = 0.15
 
 #: the wider window of the structure term: a centroid's fixed point under a window this many
 #: times wider (light that is point-symmetric about the centre does not move it)

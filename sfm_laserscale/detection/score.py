@@ -44,6 +44,8 @@ SECTORS = 8
 MID_FRACTION = 0.25
 #: the colour term of an unclipped candidate whose colour cannot be measured
 UNMEASURED_UNCLIPPED = 0.5
+#: the colour is read at the centre and this far (px) from it on either axis, the median kept
+COLOUR_JITTER_PX = 0.3
 #: the scene's laser/other channel ratio used is at most this (a scene of nearly the laser's
 #: colour leaves the colour undecided rather than negative)
 MAX_SCENE_RATIO = 1.5
@@ -149,6 +151,27 @@ def colour_evidence(light: AddedLight | None, channel: int, tau: float,
     # beyond the scene's colour and beyond white (the lamps' own colour: glints, snow)
     fraction = max(0.0, d_laser - max(min(ratio, MAX_SCENE_RATIO), 1.0) * d_other) / d_laser
     return ColourEvidence(_against(fraction, tau), fraction, True)
+
+
+def colour_around(channels: Channels, clipped_laser: NDArray[np.bool_],
+                  clipped_any: NDArray[np.bool_], xy: tuple[float, float],
+                  size: tuple[float, float], channel: int, tau: float, clipped: bool = True
+                  ) -> ColourEvidence:
+    """The median :func:`colour_evidence` at a centre ``xy`` (crop COLMAP px) and at the four
+    points COLOUR_JITTER_PX from it (``size``: the spot's radius and support, px).
+
+    A small spot's zones hold a few dozen pixels; which of them fall inside changes with a
+    centre moved by a tenth of a pixel (a refinement's detail), and one reading with them,
+    from ~0 to 1: the median of five readings does not hinge on one.
+    """
+    x, y = xy
+    offsets = ((0.0, 0.0), (COLOUR_JITTER_PX, 0.0), (-COLOUR_JITTER_PX, 0.0),
+               (0.0, COLOUR_JITTER_PX), (0.0, -COLOUR_JITTER_PX))
+    readings = sorted((colour_evidence(added_light(channels, clipped_laser, clipped_any, x + dx,
+                                                   y + dy, size[0], size[1]),
+                                       channel, tau, clipped) for dx, dy in offsets),
+                      key=lambda e: e.term)
+    return readings[len(readings) // 2]
 
 
 def _against(fraction: float, tau: float) -> float:
