@@ -235,7 +235,6 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
         if (_snr(sig_l, ring, inner & ~clipped)
                 >= LUMA_SNR_RATIO * _snr(sig, ring, inner & ~undetermined)):
             sig, undetermined = sig_l, clipped
-    noise = robust_std(sig[ring])
     top = inner & undetermined
     if top.any():
         ok = inner & ~undetermined
@@ -246,7 +245,7 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
     h, w = planes.laser.shape
     cut = bool(x0 - support_px < 0 or y0 - support_px < 0 or x0 + support_px > w
                or y0 + support_px > h)
-    return SpotPatch(gx=gx, gy=gy, signal=sig, usable=~clipped, noise=noise,
+    return SpotPatch(gx=gx, gy=gy, signal=sig, usable=~clipped, noise=robust_std(sig[ring]),
                      support_px=support_px, cut=cut)
 
 
