@@ -286,17 +286,20 @@ def neighbour_model(patch: SpotPatch, x: float, y: float, away_from: tuple[float
 
 def _centroid_step(
     patch: SpotPatch, pos: F64, x: float, y: float, sigma_w: float
-) -> tuple[float, float, float, float]:
-    """One windowed-centroid update from (x, y): (new x, new y, Σw, Σ g²·r²)."""
-    rr2 = (patch.gx - x) ** 2 + (patch.gy - y) ** 2
-    g = np.exp(-0.5 * rr2 / (sigma_w * sigma_w)) * (rr2 < patch.support_px**2)
+) -> tuple[float, float, float]:
+    """One windowed-centroid update from (x, y): (new x, new y, Σw)."""
+    g = _window_weights(patch, x, y, sigma_w)
     w = pos * g
     total = float(w.sum())
     if total <= 0:
-        return x, y, 0.0, 0.0
-    nx, ny = float((w * patch.gx).sum() / total), float((w * patch.gy).sum() / total)
-    spread = float((g * g * ((patch.gx - nx) ** 2 + (patch.gy - ny) ** 2)).sum())
-    return nx, ny, total, spread
+        return x, y, 0.0
+    return float((w * patch.gx).sum() / total), float((w * patch.gy).sum() / total), total
+
+
+def _window_weights(patch: SpotPatch, x: float, y: float, sigma_w: float) -> F64:
+    """The Gaussian window (sigma ``sigma_w``, cut at the support radius) centred on (x, y)."""
+    rr2 = (patch.gx - x) ** 2 + (patch.gy - y) ** 2
+    return np.asarray(np.exp(-0.5 * rr2 / (sigma_w * sigma_w)) * (rr2 < patch.support_px**2))
 
 
 def refine_centroid(
@@ -312,15 +315,17 @@ def refine_centroid(
     """
     pos = np.clip(patch.signal, 0.0, None)
     x, y = x0, y0
-    total = spread = 0.0
+    x_in, y_in = x, y
+    total = 0.0
     for _ in range(iterations):
-        nx, ny, total, spread = _centroid_step(patch, pos, x, y, sigma_w)
-        moved = math.hypot(nx - x, ny - y)
-        x, y = nx, ny
-        if total <= 0 or moved < 1e-5:
+        x_in, y_in = x, y
+        x, y, total = _centroid_step(patch, pos, x_in, y_in, sigma_w)
+        if total <= 0 or math.hypot(x - x_in, y - y_in) < 1e-5:
             break
     if total <= 0:
         return x, y, math.nan
+    g = _window_weights(patch, x_in, y_in, sigma_w)  # the last step's window
+    spread = float((g * g * ((patch.gx - x) ** 2 + (patch.gy - y) ** 2)).sum())
     delta = 0.25
     kx = (_centroid_step(patch, pos, x + delta, y, sigma_w)[0] - x) / delta
     ky = (_centroid_step(patch, pos, x, y + delta, sigma_w)[1] - y) / delta
