@@ -302,26 +302,56 @@ def _window_weights(patch: SpotPatch, x: float, y: float, sigma_w: float) -> F64
     return np.asarray(np.exp(-0.5 * rr2 / (sigma_w * sigma_w)) * (rr2 < patch.support_px**2))
 
 
+#: a step at least this fraction of the previous one, in the same direction, is a steady creep:
+#: the window is moved to where the steps' geometric series ends
+CREEP_RATIO = 0.3
+
+
+def _towards_fixed_point(start: tuple[float, float], step: tuple[float, float],
+                         before: tuple[float, float] | None
+                         ) -> tuple[float, float, tuple[float, float] | None]:
+    """Where a windowed centroid goes next from ``start`` after a plain ``step``, and the step
+    to compare the next one with (None after a changed step).
+
+    The step itself; half of it when it reverses the ``before`` step (a window that jumps back
+    and forth across the fixed point: halving the step makes the map contract); the end of the
+    geometric series when it repeats ``before`` shrunk by a steady ratio k (CREEP_RATIO ≤ k <
+    0.95). Only the fixed point's position changes, never the fixed point.
+    """
+    x, y = start[0] + step[0], start[1] + step[1]
+    if before is None:
+        return x, y, step
+    if step[0] * before[0] + step[1] * before[1] < 0.0:
+        return start[0] + 0.5 * step[0], start[1] + 0.5 * step[1], None
+    k = math.hypot(*step) / math.hypot(*before)
+    if CREEP_RATIO <= k < 0.95:
+        return x + step[0] * k / (1.0 - k), y + step[1] * k / (1.0 - k), None
+    return x, y, step
+
+
 def refine_centroid(
     patch: SpotPatch, x0: float, y0: float, sigma_w: float, iterations: int = 50
 ) -> tuple[float, float, float]:
     """Gaussian-windowed centroid of a :class:`SpotPatch`: (x, y, 1-sigma noise), COLMAP px.
 
     The window (sigma ``sigma_w``, cut at the support radius) follows the estimate until it
-    stops moving; for any point-symmetric spot the true centre is the fixed point, so the
-    estimate is unbiased. The sigma is the ring noise propagated through one centroid step,
-    times the gain 1 / (1 - k) of the fixed-point iteration (k: how far one step follows a
-    displaced window, measured by displacing it).
+    stops moving (:func:`_towards_fixed_point` shortens the way there); for any point-symmetric
+    spot the true centre is the fixed point, so the estimate is unbiased. The sigma is the ring
+    noise propagated through one centroid step, times the gain 1 / (1 - k) of the fixed-point
+    iteration (k: how far one step follows a displaced window, measured by displacing it).
     """
     pos = np.clip(patch.signal, 0.0, None)
     x, y = x0, y0
     x_in, y_in = x, y
     total = 0.0
+    before: tuple[float, float] | None = None  # the previous plain step (dx, dy)
     for _ in range(iterations):
         x_in, y_in = x, y
         x, y, total = _centroid_step(patch, pos, x_in, y_in, sigma_w)
-        if total <= 0 or math.hypot(x - x_in, y - y_in) < 1e-5:
+        step = (x - x_in, y - y_in)
+        if total <= 0 or math.hypot(*step) < 1e-5:
             break
+        x, y, before = _towards_fixed_point((x_in, y_in), step, before)
     if total <= 0:
         return x, y, math.nan
     g = _window_weights(patch, x_in, y_in, sigma_w)  # the last step's window
