@@ -2,7 +2,8 @@
 around the centre.
 
 A thresholded centroid (the light above a fraction of the white plateau) keeps a glow line or
-texture beside a green laser's clipped core from pulling its centre; closed-form scene. A small
+texture beside a green laser's clipped core from pulling its centre; closed-form scene. The
+windowed centroid reaches its fixed point in few steps (closed-form spots). A small
 spot's colour reading can flip with a centre moved by a tenth of a pixel; the median of five
 readings around the centre does not hinge on one of them (a frame of the independent physical
 generator).

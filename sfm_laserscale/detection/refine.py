@@ -146,6 +146,9 @@ LUMA = np.array([0.299, 0.587, 0.114])
 MIN_LUMA_SHARE = 0.5
 #: … when its SNR is at least this share of the texture-free signal's
 LUMA_SNR_RATIO = 0.5
+#: a luma-dominant laser's clipped core is centred on its light above this fraction of its
+#: plateau (a glow line or the texture beside the core no longer pulls it off the plateau)
+CLIPPED_CUT = 0.15
 
 
 def _snr(sig: F64, ring: NDArray[np.bool_], inner: NDArray[np.bool_]) -> float:
@@ -302,9 +305,10 @@ def _window_weights(patch: SpotPatch, x: float, y: float, sigma_w: float) -> F64
     return np.asarray(np.exp(-0.5 * rr2 / (sigma_w * sigma_w)) * (rr2 < patch.support_px**2))
 
 
-#: a step at least this fraction of the previous one, in the same direction, is a steady creep:
-#: the window is moved to where the steps' geometric series ends
-CREEP_RATIO = 0.3
+#: a step between these fractions of the previous one, in the same direction, is a steady creep:
+#: the window is moved to where the steps' geometric series ends (nearer 1 the jump would
+#: multiply the step's own noise)
+CREEP_RATIO = (0.3, 0.95)
 
 
 def _towards_fixed_point(start: tuple[float, float], step: tuple[float, float],
@@ -315,8 +319,8 @@ def _towards_fixed_point(start: tuple[float, float], step: tuple[float, float],
 
     The step itself; half of it when it reverses the ``before`` step (a window that jumps back
     and forth across the fixed point: halving the step makes the map contract); the end of the
-    geometric series when it repeats ``before`` shrunk by a steady ratio k (CREEP_RATIO ≤ k <
-    0.95). Only the fixed point's position changes, never the fixed point.
+    geometric series when it repeats ``before`` shrunk by a steady ratio k (within CREEP_RATIO).
+    Only the way to the fixed point changes, never the fixed point.
     """
     x, y = start[0] + step[0], start[1] + step[1]
     if before is None:
@@ -324,7 +328,7 @@ def _towards_fixed_point(start: tuple[float, float], step: tuple[float, float],
     if step[0] * before[0] + step[1] * before[1] < 0.0:
         return start[0] + 0.5 * step[0], start[1] + 0.5 * step[1], None
     k = math.hypot(*step) / math.hypot(*before)
-    if CREEP_RATIO <= k < 0.95:
+    if CREEP_RATIO[0] <= k < CREEP_RATIO[1]:
         return x + step[0] * k / (1.0 - k), y + step[1] * k / (1.0 - k), None
     return x, y, step
 
@@ -393,10 +397,6 @@ def refine_gaussian(
         return x, y, 1.0
     return x, y, math.sqrt(max(0.5 * (cov[1, 1] + cov[2, 2]), 0.0))
 
-
-#: a luma-dominant laser's clipped core is centred on its light above this fraction of its
-#: plateau (a glow line or the texture beside the core no longer pulls it off the plateau)
-CLIPPED_CUT = 0.15
 
 #: the wider window of the structure term: a centroid's fixed point under a window this many
 #: times wider (light that is point-symmetric about the centre does not move it)
