@@ -175,11 +175,14 @@ _path = click.Path(path_type=Path)
 )
 @click.option("--reuse-model-poses", is_flag=True, help="A laser image that is also a model "
               "image takes the model's pose instead of being registered.")
+@click.option("--no-guided-spots", is_flag=True, help="Do not search for missed spots where "
+              "the model and the first scale put them (docs/DETECTION.md).")
 @click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
 @common_options
 def scale(**kw: Any) -> int:
     """Estimate the model's metric scale and write the rescaled model, mesh and report."""
     from sfm_laserscale.commands.scale import ScaleOptions, run
+    from sfm_laserscale.guided_spots import GuidedSpotOptions
     from sfm_laserscale.pipeline_folders import GivenInputs, resolve_scale_inputs
     from sfm_laserscale.registration.sift_workers import SiftWorkerOptions
 
@@ -190,7 +193,8 @@ def scale(**kw: Any) -> int:
         openmvg_project=kw["openmvg_project"]))
     options = ScaleOptions(method=kw["method"], seed=kw["seed"], progress=not kw["quiet"],
                            reuse_model_poses=kw["reuse_model_poses"],
-                           sift_workers=SiftWorkerOptions(workers=kw["workers"]))
+                           sift_workers=SiftWorkerOptions(workers=kw["workers"]),
+                           guided=GuidedSpotOptions(enabled=not kw["no_guided_spots"]))
     result = run(inputs, kw["out"], options, overwrite=kw["overwrite"])
     click.echo(result.summary)
     return EXIT_OK if result.success else EXIT_NO_SCALE

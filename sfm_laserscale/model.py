@@ -218,4 +218,4 @@ class Spot:
     y: float
     score: float = 1.0  # detector confidence in [0, 1]; 1.0 for spots given by hand
     sigma_px: float = 0.3  # 1-sigma localisation uncertainty per axis, pixels
-    source: str = "detected"  # detected | manual
+    source: str = "detected"  # detected | guided (found where the model puts it) | manual

@@ -13,6 +13,7 @@ from pathlib import Path
 from sfm_laserscale.detection import DetectionOptions, DetectionResult
 from sfm_laserscale.footprints import FootprintOptions
 from sfm_laserscale.fusion import FusionOptions
+from sfm_laserscale.guided_spots import GuidedSpotOptions
 from sfm_laserscale.held_out import HeldOutCheck
 from sfm_laserscale.io.images import LaserImage
 from sfm_laserscale.io.meshes.mesh import TriangleMesh
@@ -85,6 +86,8 @@ class ScaleOptions:
     mesh_error: MeshErrorOptions = field(default_factory=MeshErrorOptions)
     model_checks: ModelCheckOptions = field(default_factory=ModelCheckOptions)
     footprints: FootprintOptions = field(default_factory=FootprintOptions)  # footprints.csv
+    # spots the detector missed, searched where the model puts them (guided_spots.py)
+    guided: GuidedSpotOptions = field(default_factory=GuidedSpotOptions)
 
 
 @dataclass(frozen=True)

@@ -113,3 +113,45 @@ def test_scale_end_to_end_on_the_survey(survey: Survey, scale_run: tuple[Result,
     assert sorted(im["name"] for im in report["images"]) == names
     for im in report["images"]:
         assert im["spots"], f"no spot detected in {im['name']}\n{summary}"
+
+
+@pytest.fixture(scope="module")
+def survey_seed1(tmp_path_factory: pytest.TempPathFactory) -> Survey:
+    """Seed 1: laser images whose every spot is a whitened clipped core or lost among pale
+    clutter (the detector alone leaves two of the four images without a spot)."""
+    out = tmp_path_factory.mktemp("underwater_survey_seed1") / "data"
+    return make_survey(out, SurveyOptions(seed=1, rig_error_scale=0.0))
+
+
+def _run(survey: Survey, out: Path, *extra: str) -> dict[str, Any]:
+    args = ["scale", "--model", str(survey.model_dir), "--mesh", str(survey.mesh_path),
+            "--rig", str(survey.rig_path), "--database", str(survey.database_path),
+            "--out", str(out), "--quiet", "--laser-images", str(survey.laser_images_dir), *extra]
+    result = CliRunner().invoke(main, args, catch_exceptions=False)
+    assert result.exit_code == 0, result.stderr
+    return dict(json.loads((out / "report.json").read_text()))
+
+
+def test_spots_the_detector_missed_are_found_where_the_model_puts_them(
+        survey_seed1: Survey, tmp_path: Path) -> None:
+    truth = json.loads(survey_seed1.truth_path.read_text())
+    true_xy = {(im["name"], s["laser"]): (s["x"], s["y"])
+               for im in truth["laser_images"] for s in im["spots"] if s.get("x") is not None}
+    alone = _run(survey_seed1, tmp_path / "alone", "--no-guided-spots")
+    guided = _run(survey_seed1, tmp_path / "guided")
+    summary = _spot_summary(guided, truth)
+
+    def spots(report: dict[str, Any], source: str) -> list[float]:
+        return [math.dist((s["x"], s["y"]), true_xy[(im["name"], s["laser"])])
+                for im in report["images"] for s in im["spots"] if s["source"] == source]
+
+    assert spots(alone, "guided") == []
+    assert sum(not im["spots"] for im in alone["images"]) >= 2  # what the search is for
+    found = spots(guided, "guided")
+    assert len(found) >= 6 and max(found) < 1.0, summary
+    assert sum(not im["spots"] for im in guided["images"]) == 0, summary
+    assert len(spots(guided, "detected")) == len(spots(alone, "detected"))
+    err = (guided["scale"]["value"] - survey_seed1.true_scale) / survey_seed1.true_scale
+    assert abs(err) < 0.003, f"{err:+.3%}\n{summary}"
+    rows = (tmp_path / "guided" / "spots.csv").read_text().splitlines()
+    assert sum(r.endswith(",guided") for r in rows) == len(found)

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from sfm_laserscale.detection import DetectionResult, detect_spots
+from sfm_laserscale.detection.guided import detect_near
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.footprints import (
     Footprint,
@@ -28,6 +29,11 @@ from sfm_laserscale.footprints import (
     model_views,
 )
 from sfm_laserscale.fusion import FusedScale, fuse
+from sfm_laserscale.guided_spots import (
+    beam_rays,
+    laser_offsets,
+    predict_spots,
+)
 from sfm_laserscale.held_out import check_held_out, reused_registrations
 from sfm_laserscale.io.colmap_write import write_scaled_colmap_model
 from sfm_laserscale.io.footprints_csv import write_footprints_csv
@@ -238,6 +244,7 @@ def crop_mesh(runs: Sequence[ImageRun], loaded: LoadedInputs,
     the points of the images still estimated: a subset of these."""
     rays = [spot_cast_rays(r.spots, camera, pose, options.spot_cast)
             for r, camera, pose in _views(runs)]
+    rays += guided_crop_rays(runs, loaded.rig, options)
     rays += [mesh_check_rays(r, options) for r, _, _ in _views(runs)]
     origins = np.concatenate([o for o, _ in rays]) if rays else np.zeros((0, 3))
     dirs = np.concatenate([d for _, d in rays]) if rays else np.zeros((0, 3))
@@ -330,6 +337,125 @@ def cast_and_estimate(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster
                    observation=obs, mesh_errors=extra.mesh_errors)
 
 
+def _registered(run: ImageRun) -> tuple[Camera, Pose] | None:
+    """Camera and cam_from_world of a registered image (whatever became of its spots)."""
+    reg = run.registration
+    if run.camera is None or reg is None or not reg.success or reg.cam_from_world is None:
+        return None
+    return run.camera, reg.cam_from_world
+
+
+def _detection_ranges(options: ScaleOptions) -> tuple[float, float]:
+    return options.detection.min_range_m, options.detection.max_range_m
+
+
+def guided_crop_rays(runs: Sequence[ImageRun], rig: Rig,
+                     options: ScaleOptions) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The camera rays through every calibrated beam of every registered image (the guided
+    search casts them once the scale is known: guided_spots.py)."""
+    if not options.guided.enabled:
+        return []
+    out = []
+    for r in runs:
+        if (view := _registered(r)) is not None:
+            for laser in rig.lasers:
+                if laser.calibrated:
+                    b = beam_rays(*view, laser, *_detection_ranges(options),
+                                  options.guided.samples)
+                    out.append((b.origins, b.directions))
+    return out
+
+
+def _offsets(runs: Sequence[ImageRun], rig: Rig, caster: MeshRaycaster, scale: float,
+             options: ScaleOptions) -> dict[str, tuple[float, float]]:
+    """Per laser, the median offset of the spots found on their own from their predictions."""
+    pairs = []
+    for r in runs:
+        own = [s for s in r.spots if s.source == "detected"]
+        if (view := _registered(r)) is None or not own:
+            continue
+        pred, _ = predict_spots(*view, rig, [s.laser for s in own], caster, scale,
+                                _detection_ranges(options), options.guided)
+        pairs += [(s.laser, s.x, s.y, *pred[s.laser]) for s in own if s.laser in pred]
+    return laser_offsets(pairs, options.guided.min_offset_spots)
+
+
+def _guided_run(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster, scale: float,
+                offsets: dict[str, tuple[float, float]], options: ScaleOptions) -> ImageRun:
+    """One registered image's missing calibrated lasers searched where the model puts them;
+    with new spots it comes back without hits or estimates (and without a reason)."""
+    view = _registered(run)
+    have = {s.laser for s in run.spots}
+    missing = [las.name for las in loaded.rig.lasers if las.calibrated and las.name not in have]
+    if view is None or not missing:
+        return run
+    pred, why = predict_spots(*view, loaded.rig, missing, caster, scale,
+                              _detection_ranges(options), options.guided, offsets)
+    found = (detect_near(read_rgb(run.path), view[0], loaded.rig, pred, options.detection,
+                         options.guided.search) if pred else None)
+    reasons = dict(run.spot_reasons)
+    for name in missing:
+        extra = why.get(name) or (found.missing.get(name) if found else None)
+        if extra:
+            reasons[name] = f"{reasons.get(name, 'not found')}; where the model puts it: {extra}"
+    if found is None or not found.spots:
+        return replace(run, spot_reasons=reasons)
+    for s in found.spots:
+        reasons.pop(s.laser, None)
+        logger.info("laser image %s: %s found where the model puts it (%.1f, %.1f)", run.name,
+                    s.laser, s.x, s.y)
+    return replace(run, spots=run.spots + found.spots, spot_reasons=reasons, reason=None,
+                   hits=(), estimates=None, observation=None, mesh_errors=())
+
+
+def covering_caster(runs: Sequence[ImageRun], caster: MeshRaycaster, whole: LoadedInputs,
+                    options: ScaleOptions) -> MeshRaycaster:
+    """``caster`` when it covers every spot ray, mesh-check ray and check point of ``runs``, else
+    a caster on the whole mesh (``whole.mesh``) cropped again for them (the guided search's
+    spots lie off the first crop's rays)."""
+    rays = [spot_cast_rays(r.spots, camera, pose, options.spot_cast)
+            for r, camera, pose in _views(runs)]
+    rays += [mesh_check_rays(r, options) for r, _, _ in _views(runs)]
+    if caster.coverage is None or not rays:
+        return caster
+    o = np.concatenate([a for a, _ in rays])
+    d = np.concatenate([b for _, b in rays])
+    points = mesh_check_points(runs, options, whole.model.extent)
+    if caster.coverage.covers_rays(o, d).all() and caster.coverage.covers_points(points).all():
+        return caster
+    crop = crop_mesh(runs, whole, options)
+    logger.info("mesh cropped again for the spots found where the model puts them: %d of %d "
+                "triangles", len(crop.triangles), crop.source_triangles)
+    return crop.raycaster()
+
+
+def _estimate_guided(run: ImageRun, before: ImageRun, loaded: LoadedInputs,
+                     caster: MeshRaycaster, options: ScaleOptions, timer: Timer,
+                     field: IntrinsicsField | None, mesh_offset: SharedOffset | None) -> ImageRun:
+    """Cast and estimate an image that gained spots in the guided search (``before``: the same
+    image before it, kept with a reason when the new spots' rays lie outside the mesh crop)."""
+    if run is before or run.estimates is not None or run.reason is not None:
+        return run
+    try:
+        return cast_and_estimate(run, loaded, caster, options, timer, field, mesh_offset)
+    except RuntimeError:  # covering_caster was not given the whole mesh
+        new = {s.laser for s in run.spots} - {s.laser for s in before.spots}
+        why = "found where the model puts it, but its ray lies outside the mesh crop"
+        return replace(before, spot_reasons={**before.spot_reasons,
+                                             **{n: why for n in sorted(new)}})
+
+
+def guided_search(runs: Sequence[ImageRun], loaded: LoadedInputs, caster: MeshRaycaster,
+                  scale: float, options: ScaleOptions) -> list[ImageRun] | None:
+    """The runs with spots the detector missed found where the model puts them at ``scale``,
+    or with the reason they were not (None when the search is off, there is no scale yet, or
+    spots were given by hand)."""
+    if not options.guided.enabled or not np.isfinite(scale) or loaded.manual_spots:
+        return None
+    offsets = _offsets(runs, loaded.rig, caster, scale, options)
+    return [_guided_run(r, loaded, caster, scale, offsets, options) for r in runs]
+
+
 def _observations(runs: Sequence[ImageRun]) -> list[ImageObservation]:
     """The estimated images as the estimators' observations (pose, covariance, hits)."""
     out = []
@@ -417,7 +543,9 @@ def _estimate_all(
         found = image_footprints(runs, loaded, options)
     with timer("raycast"):
         crop = crop_mesh(runs, loaded, options)
-        loaded = replace(loaded, mesh=None)  # the crop is all the rest needs
+        # the crop is all the rest needs, but for the guided search's spots (cropped for below)
+        whole = loaded if options.guided.enabled and not loaded.manual_spots else None
+        loaded = replace(loaded, mesh=None)
         trim_heap()
         caster = crop.raycaster()
     logger.info("mesh cropped to the spots' rays and the check points: %d of %d triangles "
@@ -428,6 +556,17 @@ def _estimate_all(
             runs, options)
         offset = shared_mesh_offset(runs, caster, field, options)
     runs = [cast_and_estimate(r, loaded, caster, options, timer, field, offset) for r in runs]
+    fusion = fuse_all(runs, loaded.rig, options)
+    with timer("guided"):
+        guided = guided_search(runs, loaded, caster, fusion.headline.value, options)
+    if guided is not None:
+        if whole is not None:
+            with timer("raycast"):
+                caster = covering_caster(guided, caster, whole, options)
+        runs = [_estimate_guided(g, r, loaded, caster, options, timer, field, offset)
+                for g, r in zip(guided, runs, strict=True)]
+    whole = None
+    trim_heap()
     for r in runs:
         logger.info("laser image %s: %s", r.name,
                     "estimated" if r.reason is None else f"no estimate ({r.reason})")

@@ -23,7 +23,7 @@ logger = logging.getLogger(__name__)
 REQUIRED_COLUMNS = ("image", "laser", "x", "y")
 OPTIONAL_COLUMNS = ("score", "sigma_px", "source")
 WRITE_COLUMNS = ("image", "laser", "x", "y", "score", "sigma_px", "source")
-SOURCES = ("detected", "manual")
+SOURCES = ("detected", "guided", "manual")
 
 
 def _basename(name: str) -> str:

@@ -1,0 +1,152 @@
+"""A laser's spot searched where the model predicts it: a few pixels around one image point.
+
+Once the model's scale is known from the spots found on their own evidence, the registered
+pose, the mesh and the calibrated beam tell where every other laser's spot must be (the
+prediction is made by :mod:`sfm_laserscale.guided_spots`). A band 10-20 px wide and hundreds
+long holds the scene's own blobs — pale clutter, glints, texture as strong as a faint spot —
+so :func:`.detect.detect_spots` holds maxima below the scene's clutter level back and weighs
+every candidate against the rest of its band. Within ``radius_px`` of the predicted point
+that competition is gone: a scene blob is no more likely there than at any other few pixels,
+where the spot is certain to be if the laser lit the floor.
+
+:func:`detect_near` measures the local maxima of the laser's responses in a small window with
+the detector's own code (shape, sub-pixel centre, σ, colour), with no clutter gate and no
+clutter term, and takes the best candidate within ``radius_px`` of the prediction whose
+evidence (contrast × roundness × colour) reaches ``min_score``. A clipped core whose colour
+reads whitened (:mod:`.joint`) takes colour term 1 there, as it does at the other spots' range.
+Every hard test of the detector still applies (too large, not compact, SNR below ``min_snr``,
+refinement failed).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sfm_laserscale.detection.beams import SearchRegion, default_max_spot_radius_px
+from sfm_laserscale.detection.candidates import Measure, candidates_for_colour
+from sfm_laserscale.detection.detect import _check_image, group_rgb
+from sfm_laserscale.detection.joint import CLIPPED_COLOUR
+from sfm_laserscale.detection.options import DetectionOptions
+from sfm_laserscale.detection.response import CHANNELS, crop_channels
+from sfm_laserscale.errors import InputError
+from sfm_laserscale.model import Camera, Spot
+from sfm_laserscale.rig import Rig
+
+
+@dataclass(frozen=True)
+class GuidedOptions:
+    """Options of :func:`detect_near`.
+
+    - ``radius_px``: largest distance (px) of a spot from its predicted point.
+    - ``min_score``: least evidence (contrast × roundness × colour, each 0–1) of a spot.
+    - ``min_snr``: the weak-spot test's SNR (None: the detector's ``min_snr``).
+    """
+
+    radius_px: float = 3.0
+    min_score: float = 0.25
+    min_snr: float | None = None
+
+    def __post_init__(self) -> None:
+        if not self.radius_px > 0:
+            raise InputError(f"guided radius_px must be positive, got {self.radius_px}")
+        if not 0 <= self.min_score <= 1:
+            raise InputError(f"guided min_score must be in [0, 1], got {self.min_score}")
+
+
+@dataclass(frozen=True)
+class GuidedResult:
+    """Spots found near their predictions (``source`` "guided") and, for every other laser
+    searched, why not."""
+
+    spots: tuple[Spot, ...]
+    missing: dict[str, str]
+
+
+def _window(camera: Camera, xy: tuple[float, float], reach: int) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) array-index window of half-size ``reach`` around a COLMAP point."""
+    col, row = int(math.floor(xy[0])), int(math.floor(xy[1]))
+    return (max(0, col - reach), max(0, row - reach), min(camera.width, col + reach + 1),
+            min(camera.height, row + reach + 1))
+
+
+def _region(camera: Camera, xy: tuple[float, float], radius: float, max_radius: float,
+            options: DetectionOptions) -> SearchRegion:
+    """The window searched around a prediction: maxima within ``radius`` (+1 px) of it."""
+    reach = int(math.ceil(radius + 2.0 * max_radius + 4.0 * max(options.spot_sigmas_px) + 8.0))
+    roi = _window(camera, xy, reach)
+    x0, y0, x1, y1 = roi
+    cols = np.arange(x0, x1) + 0.5
+    rows = np.arange(y0, y1) + 0.5
+    near = np.hypot(cols[None, :] - xy[0], rows[:, None] - xy[1]) <= radius + 1.0
+    return SearchRegion(roi, {}, {}, near, radius, max_radius)
+
+
+def evidence(m: Measure) -> float:
+    """A candidate's evidence without the clutter term (whitened clipped cores: colour 1)."""
+    terms = {k: v for k, v in m.terms.items() if k != "clutter"}
+    colour = CLIPPED_COLOUR if m.whitened else m.colour.term
+    return float(np.prod(list(terms.values()))) * colour if terms else 0.0
+
+
+def _best(measures: list[Measure], xy: tuple[float, float], radius: float
+          ) -> tuple[Measure | None, str]:
+    """The highest-evidence valid candidate within ``radius`` of ``xy``, or why there is none."""
+    near = [m for m in measures if math.hypot(m.x - xy[0], m.y - xy[1]) <= radius]
+    valid = [m for m in near if m.rejected is None]
+    if valid:
+        return max(valid, key=evidence), ""
+    if not near:
+        return None, f"no local maximum of its light within {radius:g} px of ({xy[0]:.1f}, " \
+                     f"{xy[1]:.1f}), where the model puts its spot"
+    closest = min(near, key=lambda m: math.hypot(m.x - xy[0], m.y - xy[1]))
+    return None, (f"the maximum at ({closest.x:.1f}, {closest.y:.1f}), near where the model puts "
+                  f"its spot, is {closest.rejected}")
+
+
+def detect_near_one(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, laser: str,
+                    xy: tuple[float, float], options: DetectionOptions,
+                    guided: GuidedOptions) -> tuple[Spot | None, str]:
+    """One laser's spot within ``guided.radius_px`` of the COLMAP point ``xy``, or why not."""
+    las = rig.laser(laser)
+    max_radius = options.max_spot_radius_px or default_max_spot_radius_px(
+        camera.width, camera.height)
+    if not (0 <= xy[0] <= camera.width and 0 <= xy[1] <= camera.height):
+        return None, f"the model puts its spot at ({xy[0]:.1f}, {xy[1]:.1f}), outside the image"
+    region = _region(camera, xy, guided.radius_px, max_radius, options)
+    ungated = replace(options, min_clutter_ratio=0.0, second_look_clutter_ratio=0.0,
+                      min_snr=options.min_snr if guided.min_snr is None else guided.min_snr)
+    channels = crop_channels(image_rgb, region.roi, options.input_gamma)
+    colours = list(CHANNELS) if las.color == "any" else [las.color]
+    measures = [m for c in colours
+                for m in candidates_for_colour(channels, c, ungated, region, group_rgb(rig, c))]
+    best, why = _best(measures, xy, guided.radius_px)
+    if best is None:
+        return None, why
+    score = evidence(best)
+    if score < guided.min_score:
+        return None, (f"the best candidate near where the model puts its spot, at "
+                      f"({best.x:.1f}, {best.y:.1f}), scores {score:.2f} < {guided.min_score:g}")
+    return Spot(laser=laser, x=best.x, y=best.y, score=float(min(score, 1.0)),
+                sigma_px=best.sigma_px, source="guided"), ""
+
+
+def detect_near(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
+                predicted: Mapping[str, tuple[float, float]],
+                options: DetectionOptions = DetectionOptions(),  # noqa: B008
+                guided: GuidedOptions = GuidedOptions()) -> GuidedResult:  # noqa: B008
+    """Each laser's spot near its predicted point (laser -> COLMAP (x, y)), or why not."""
+    _check_image(image_rgb, camera)
+    spots, missing = [], {}
+    for laser, xy in predicted.items():
+        spot, why = detect_near_one(image_rgb, camera, rig, laser, (float(xy[0]), float(xy[1])),
+                                    options, guided)
+        if spot is None:
+            missing[laser] = why
+        else:
+            spots.append(spot)
+    return GuidedResult(tuple(spots), missing)
