@@ -146,7 +146,7 @@ class Timer:
             k: round(self.seconds.get(k, 0.0), 4)
             for k in ("load", "detect", "register", "raycast", "estimate", "write")
         }
-        for k in ("sift_here", "sift_in_workers", "footprints"):  # when these ran
+        for k in ("sift_here", "sift_in_workers", "footprints", "guided"):  # when these ran
             if k in self.seconds:
                 out[k] = round(self.seconds[k], 4)
         out["total"] = round(time.perf_counter() - self._start, 4)

@@ -119,3 +119,33 @@ def test_a_spot_lost_among_scene_blobs_is_found_where_the_model_puts_it() -> Non
     with pytest.raises(Exception, match="radius_px"):
         GuidedOptions(radius_px=0.0)
     assert DetectionOptions().min_snr > 0  # the weak-spot test still applies near a prediction
+
+
+def test_the_overlay_names_a_guided_spot_and_drops_its_laser_near_misses() -> None:
+    from sfm_laserscale.model import Spot
+    from sfm_laserscale.report.overlays import _legend_entries, draw_overlay
+
+    rig = _rig()
+    spots = [Spot("L2", 512.0, 412.0, source="guided")]
+    texts = [t for _, _, t in _legend_entries(rig, spots, {"L2": 0.3}, {}, None)]
+    assert texts[:2] == ["L1 not found", "L2 s=0.3 (where the model puts it)"]
+    rgb = np.full((CAMERA.height, CAMERA.width, 3), 60, np.uint8)
+    args = (rgb, CAMERA, rig, spots, {"L2": 0.3}, None, 0.3, 20.0)
+    plain = draw_overlay(*args)
+    assert np.array_equal(draw_overlay(*args, near_misses={"L2": [(300.0, 300.0, 0.2)]}), plain)
+    assert not np.array_equal(draw_overlay(*args, near_misses={"L1": [(300.0, 300.0, 0.2)]}),
+                              plain)
+
+
+def test_near_a_prediction_colour_counts_at_least_the_floor() -> None:
+    from sfm_laserscale.detection.candidates import Measure
+    from sfm_laserscale.detection.guided import evidence
+    from sfm_laserscale.detection.score import ColourEvidence
+
+    m = Measure(x=0.0, y=0.0, color="green", source="bright", response=1.0)
+    m.terms = {"contrast": 0.6, "roundness": 0.9, "clutter": 0.1}  # clutter does not count
+    m.colour = ColourEvidence(0.05, 0.0, True)  # a green spot in green water: the scene's colour
+    assert evidence(m, 0.5) == pytest.approx(0.6 * 0.9 * 0.5)
+    assert evidence(m, 0.0) == pytest.approx(0.6 * 0.9 * 0.05)
+    m.whitened = True  # a clipped core whose rim reads white
+    assert evidence(m, 0.0) == pytest.approx(0.6 * 0.9)

@@ -153,5 +153,6 @@ def test_spots_the_detector_missed_are_found_where_the_model_puts_them(
     assert len(spots(guided, "detected")) == len(spots(alone, "detected"))
     err = (guided["scale"]["value"] - survey_seed1.true_scale) / survey_seed1.true_scale
     assert abs(err) < 0.003, f"{err:+.3%}\n{summary}"
+    assert "guided" in guided["timings_s"] and "guided" not in alone["timings_s"]
     rows = (tmp_path / "guided" / "spots.csv").read_text().splitlines()
     assert sum(r.endswith(",guided") for r in rows) == len(found)

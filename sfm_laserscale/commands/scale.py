@@ -557,8 +557,10 @@ def _estimate_all(
         offset = shared_mesh_offset(runs, caster, field, options)
     runs = [cast_and_estimate(r, loaded, caster, options, timer, field, offset) for r in runs]
     fusion = fuse_all(runs, loaded.rig, options)
-    with timer("guided"):
-        guided = guided_search(runs, loaded, caster, fusion.headline.value, options)
+    guided = None
+    if options.guided.enabled:
+        with timer("guided"):
+            guided = guided_search(runs, loaded, caster, fusion.headline.value, options)
     if guided is not None:
         if whole is not None:
             with timer("raycast"):

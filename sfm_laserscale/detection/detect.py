@@ -34,7 +34,7 @@ from sfm_laserscale.rig import Rig
 logger = logging.getLogger(__name__)
 
 
-def _check_image(image_rgb: NDArray[np.uint8], camera: Camera) -> None:
+def check_image(image_rgb: NDArray[np.uint8], camera: Camera) -> None:
     """Validate the image against its camera (shape, size, dtype)."""
     if image_rgb.ndim != 3 or image_rgb.shape[2] != 3:
         raise InputError(f"laser image must be RGB (H, W, 3), got shape {image_rgb.shape}")
@@ -89,7 +89,7 @@ def detect_spots(
     options: DetectionOptions = DetectionOptions(),  # noqa: B008 (frozen dataclass)
 ) -> DetectionResult:
     """Detect laser spots in one image and assign them to the rig's lasers."""
-    _check_image(image_rgb, camera)
+    check_image(image_rgb, camera)
     region = search_region(camera, rig, options)
     measures = _measure_candidates(image_rgb, rig, region, options)
     trim_heap()  # the detection planes (~16 bytes per pixel) go back to the OS

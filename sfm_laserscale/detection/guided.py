@@ -12,8 +12,10 @@ where the spot is certain to be if the laser lit the floor.
 :func:`detect_near` measures the local maxima of the laser's responses in a small window with
 the detector's own code (shape, sub-pixel centre, σ, colour), with no clutter gate and no
 clutter term, and takes the best candidate within ``radius_px`` of the prediction whose
-evidence (contrast × roundness × colour) reaches ``min_score``. A clipped core whose colour
-reads whitened (:mod:`.joint`) takes colour term 1 there, as it does at the other spots' range.
+evidence (contrast × roundness × colour) reaches ``min_score``. Colour counts at least
+``colour_floor`` (0.5: a green spot in green water adds light of the scene's own colour); a
+clipped core whose colour reads whitened (:mod:`.joint`) takes colour term 1 there, as it does
+at the other spots' range.
 Every hard test of the detector still applies (too large, not compact, SNR below ``min_snr``,
 refinement failed).
 """
@@ -29,7 +31,7 @@ from numpy.typing import NDArray
 
 from sfm_laserscale.detection.beams import SearchRegion, default_max_spot_radius_px
 from sfm_laserscale.detection.candidates import Measure, candidates_for_colour
-from sfm_laserscale.detection.detect import _check_image, group_rgb
+from sfm_laserscale.detection.detect import check_image, group_rgb
 from sfm_laserscale.detection.joint import CLIPPED_COLOUR
 from sfm_laserscale.detection.options import DetectionOptions
 from sfm_laserscale.detection.response import CHANNELS, crop_channels
@@ -45,17 +47,22 @@ class GuidedOptions:
     - ``radius_px``: largest distance (px) of a spot from its predicted point.
     - ``min_score``: least evidence (contrast × roundness × colour, each 0–1) of a spot.
     - ``min_snr``: the weak-spot test's SNR (None: the detector's ``min_snr``).
+    - ``colour_floor``: the colour term never counts below this: a green spot in green water
+      adds light of the scene's own colour (colour term ~0.05 on the spot itself), and near its
+      predicted point its position is the stronger evidence (docs/DETECTION.md).
     """
 
     radius_px: float = 3.0
     min_score: float = 0.25
     min_snr: float | None = None
+    colour_floor: float = 0.5
 
     def __post_init__(self) -> None:
         if not self.radius_px > 0:
             raise InputError(f"guided radius_px must be positive, got {self.radius_px}")
-        if not 0 <= self.min_score <= 1:
-            raise InputError(f"guided min_score must be in [0, 1], got {self.min_score}")
+        for name in ("min_score", "colour_floor"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise InputError(f"guided {name} must be in [0, 1], got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)
@@ -86,20 +93,22 @@ def _region(camera: Camera, xy: tuple[float, float], radius: float, max_radius: 
     return SearchRegion(roi, {}, {}, near, radius, max_radius)
 
 
-def evidence(m: Measure) -> float:
-    """A candidate's evidence without the clutter term (whitened clipped cores: colour 1)."""
+def evidence(m: Measure, colour_floor: float) -> float:
+    """A candidate's evidence without the clutter term, its colour term at least
+    ``colour_floor`` (whitened clipped cores: colour 1)."""
     terms = {k: v for k, v in m.terms.items() if k != "clutter"}
-    colour = CLIPPED_COLOUR if m.whitened else m.colour.term
+    colour = CLIPPED_COLOUR if m.whitened else max(m.colour.term, colour_floor)
     return float(np.prod(list(terms.values()))) * colour if terms else 0.0
 
 
-def _best(measures: list[Measure], xy: tuple[float, float], radius: float
+def _best(measures: list[Measure], xy: tuple[float, float], guided: GuidedOptions
           ) -> tuple[Measure | None, str]:
     """The highest-evidence valid candidate within ``radius`` of ``xy``, or why there is none."""
+    radius = guided.radius_px
     near = [m for m in measures if math.hypot(m.x - xy[0], m.y - xy[1]) <= radius]
     valid = [m for m in near if m.rejected is None]
     if valid:
-        return max(valid, key=evidence), ""
+        return max(valid, key=lambda m: evidence(m, guided.colour_floor)), ""
     if not near:
         return None, f"no local maximum of its light within {radius:g} px of ({xy[0]:.1f}, " \
                      f"{xy[1]:.1f}), where the model puts its spot"
@@ -124,10 +133,10 @@ def detect_near_one(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, lase
     colours = list(CHANNELS) if las.color == "any" else [las.color]
     measures = [m for c in colours
                 for m in candidates_for_colour(channels, c, ungated, region, group_rgb(rig, c))]
-    best, why = _best(measures, xy, guided.radius_px)
+    best, why = _best(measures, xy, guided)
     if best is None:
         return None, why
-    score = evidence(best)
+    score = evidence(best, guided.colour_floor)
     if score < guided.min_score:
         return None, (f"the best candidate near where the model puts its spot, at "
                       f"({best.x:.1f}, {best.y:.1f}), scores {score:.2f} < {guided.min_score:g}")
@@ -140,7 +149,7 @@ def detect_near(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
                 options: DetectionOptions = DetectionOptions(),  # noqa: B008
                 guided: GuidedOptions = GuidedOptions()) -> GuidedResult:  # noqa: B008
     """Each laser's spot near its predicted point (laser -> COLMAP (x, y)), or why not."""
-    _check_image(image_rgb, camera)
+    check_image(image_rgb, camera)
     spots, missing = [], {}
     for laser, xy in predicted.items():
         spot, why = detect_near_one(image_rgb, camera, rig, laser, (float(xy[0]), float(xy[1])),

@@ -306,14 +306,16 @@ def _legend_entries(
 ) -> list[tuple[str, tuple[int, int, int], str]]:
     """(kind, colour, text) per legend box: one per laser, then inliers and beams."""
     seen = {s.laser for s in spots}
+    guided = {s.laser: " (where the model puts it)" for s in spots if s.source == "guided"}
     out: list[tuple[str, tuple[int, int, int], str]] = []
     for i, name in enumerate(rig.names):
+        how = guided.get(name, "")
         if name in rejected:
-            out.append(("spot", _RED, f"{name} rejected"))
+            out.append(("spot", _RED, f"{name} rejected{how}"))
         elif name in scales and np.isfinite(scales[name]):
-            out.append(("spot", laser_color_bgr(i), f"{name} s={scales[name]:.6g}"))
+            out.append(("spot", laser_color_bgr(i), f"{name} s={scales[name]:.6g}{how}"))
         elif name in seen:
-            out.append(("spot", laser_color_bgr(i), f"{name} no FCM"))
+            out.append(("spot", laser_color_bgr(i), f"{name} no FCM{how}"))
         elif near and near.get(name):
             out.append(("square", laser_color_bgr(i), f"{name} not found: best candidates"))
         else:
@@ -419,6 +421,8 @@ def draw_overlay(
     score), drawn as open squares with their score.
     """
     rejected = rejected or {}
+    found = {s.laser for s in spots}  # a spot found later (guided search) has no near misses
+    near_misses = {k: v for k, v in (near_misses or {}).items() if k not in found}
     img, f = _resize(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), min_side, max_side)
     st = _Style.for_size(max(img.shape[:2]))
     if inliers_xy is not None:
