@@ -146,7 +146,7 @@ class PredictionRecorder:
 
         def wrapped(*args: Any, **kw: Any) -> Any:
             pred, why = self._orig(*args, **kw)
-            if kw.get("offsets") is not None or len(args) > 8:  # the search's own predictions
+            if "offsets" in kw or len(args) > 6:  # the search's own predictions (with offsets)
                 self.rows.append((args[1].t.copy(), dict(pred)))
             return pred, why
 

@@ -10,11 +10,7 @@ import pytest
 
 from sfm_laserscale.detection import DetectionOptions, detect_spots
 from sfm_laserscale.detection.guided import GuidedOptions, detect_near
-from sfm_laserscale.guided_spots import (
-    GuidedSpotOptions,
-    laser_offsets,
-    predict_spots,
-)
+from sfm_laserscale.guided_spots import laser_offsets, predict_spots
 from sfm_laserscale.model import Camera, Pose
 from sfm_laserscale.raycast import MeshRaycaster
 from sfm_laserscale.rig import Rig, rig_from_dict
@@ -63,17 +59,15 @@ def _true_spot(rig: Rig, name: str, pose: Pose, scale: float) -> tuple[float, fl
 def test_the_predicted_spot_is_where_the_beam_meets_the_mesh(scale: float, tilt: float) -> None:
     rig = _rig()
     pose = _looking_down(np.array([0.7, -0.4, 9.0]), tilt)  # 9 model units up
-    pred, why = predict_spots(CAMERA, pose, rig, ["L1", "L2"], _floor(), scale, (0.3, 20.0),
-                              GuidedSpotOptions())
+    pred, why = predict_spots(CAMERA, pose, rig, ["L1", "L2"], _floor(), scale)
     assert not why
     for name in ("L1", "L2"):
-        assert math.dist(pred[name], _true_spot(rig, name, pose, scale)) < 0.02
+        assert math.dist(pred[name], _true_spot(rig, name, pose, scale)) < 1e-6
     # the rig's offset is added; a beam that never reaches the floor has none, with its reason
-    moved, _ = predict_spots(CAMERA, pose, rig, ["L1"], _floor(), scale, (0.3, 20.0),
-                             GuidedSpotOptions(), offsets={"L1": (1.5, -0.5)})
+    moved, _ = predict_spots(CAMERA, pose, rig, ["L1"], _floor(), scale,
+                             offsets={"L1": (1.5, -0.5)})
     assert math.dist(moved["L1"], (pred["L1"][0] + 1.5, pred["L1"][1] - 0.5)) < 1e-9
-    far, why = predict_spots(CAMERA, pose, rig, ["L1"], _floor(), 0.01, (0.3, 20.0),
-                             GuidedSpotOptions())
+    far, why = predict_spots(CAMERA, pose, rig, ["L1"], _floor(), 0.001)  # beside the floor
     assert far == {} and "does not meet the mesh" in why["L1"]
 
 

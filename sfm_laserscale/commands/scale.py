@@ -237,14 +237,15 @@ def _views(runs: Sequence[ImageRun]) -> list[tuple[ImageRun, Camera, Pose]]:
     return [(r, *v) for r in runs if (v := _view(r)) is not None]
 
 
-def crop_mesh(runs: Sequence[ImageRun], loaded: LoadedInputs,
-              options: ScaleOptions) -> MeshCrop:
-    """The mesh cropped to every ray the registered images' spots will cast and to the
-    mesh-check points (exact: raycast.crop_for_rays). The check itself runs after casting, on
-    the points of the images still estimated: a subset of these."""
+def crop_mesh(runs: Sequence[ImageRun], loaded: LoadedInputs, options: ScaleOptions,
+              extra_rays: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> MeshCrop:
+    """The mesh cropped to every ray the registered images' spots will cast (and
+    ``extra_rays``: (origins, directions) pairs) and to the mesh-check points (exact:
+    raycast.crop_for_rays). The check itself runs after casting, on the points of the images
+    still estimated: a subset of these."""
     rays = [spot_cast_rays(r.spots, camera, pose, options.spot_cast)
             for r, camera, pose in _views(runs)]
-    rays += guided_crop_rays(runs, loaded.rig, options)
+    rays += list(extra_rays)
     rays += [mesh_check_rays(r, options) for r, _, _ in _views(runs)]
     origins = np.concatenate([o for o, _ in rays]) if rays else np.zeros((0, 3))
     dirs = np.concatenate([d for _, d in rays]) if rays else np.zeros((0, 3))
@@ -345,24 +346,15 @@ def _registered(run: ImageRun) -> tuple[Camera, Pose] | None:
     return run.camera, reg.cam_from_world
 
 
-def _detection_ranges(options: ScaleOptions) -> tuple[float, float]:
-    return options.detection.min_range_m, options.detection.max_range_m
-
-
-def guided_crop_rays(runs: Sequence[ImageRun], rig: Rig,
-                     options: ScaleOptions) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The camera rays through every calibrated beam of every registered image (the guided
-    search casts them once the scale is known: guided_spots.py)."""
-    if not options.guided.enabled:
-        return []
+def _beam_rays(runs: Sequence[ImageRun], rig: Rig,
+               scale: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Every calibrated beam of every registered image as a model-frame ray at ``scale``."""
+    names = [las.name for las in rig.lasers if las.calibrated]
     out = []
     for r in runs:
         if (view := _registered(r)) is not None:
-            for laser in rig.lasers:
-                if laser.calibrated:
-                    b = beam_rays(*view, laser, *_detection_ranges(options),
-                                  options.guided.samples)
-                    out.append((b.origins, b.directions))
+            b = beam_rays(view[1], rig, names, scale)
+            out.append((b.origins, b.directions))
     return out
 
 
@@ -374,8 +366,7 @@ def _offsets(runs: Sequence[ImageRun], rig: Rig, caster: MeshRaycaster, scale: f
         own = [s for s in r.spots if s.source == "detected"]
         if (view := _registered(r)) is None or not own:
             continue
-        pred, _ = predict_spots(*view, rig, [s.laser for s in own], caster, scale,
-                                _detection_ranges(options), options.guided)
+        pred, _ = predict_spots(*view, rig, [s.laser for s in own], caster, scale)
         pairs += [(s.laser, s.x, s.y, *pred[s.laser]) for s in own if s.laser in pred]
     return laser_offsets(pairs, options.guided.min_offset_spots)
 
@@ -389,8 +380,7 @@ def _guided_run(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster, scal
     missing = [las.name for las in loaded.rig.lasers if las.calibrated and las.name not in have]
     if view is None or not missing:
         return run
-    pred, why = predict_spots(*view, loaded.rig, missing, caster, scale,
-                              _detection_ranges(options), options.guided, offsets)
+    pred, why = predict_spots(*view, loaded.rig, missing, caster, scale, offsets)
     found = (detect_near(read_rgb(run.path), view[0], loaded.rig, pred, options.detection,
                          options.guided.search) if pred else None)
     reasons = dict(run.spot_reasons)
@@ -409,13 +399,14 @@ def _guided_run(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster, scal
 
 
 def covering_caster(runs: Sequence[ImageRun], caster: MeshRaycaster, whole: LoadedInputs,
-                    options: ScaleOptions) -> MeshRaycaster:
-    """``caster`` when it covers every spot ray, mesh-check ray and check point of ``runs``, else
-    a caster on the whole mesh (``whole.mesh``) cropped again for them (the guided search's
-    spots lie off the first crop's rays)."""
+                    options: ScaleOptions,
+                    extra_rays: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> MeshRaycaster:
+    """``caster`` when it covers every spot ray, mesh-check ray and check point of ``runs`` and
+    ``extra_rays``, else a caster on the whole mesh (``whole.mesh``) cropped again for them
+    (the beams at the first scale, then the guided search's spots, lie off the first crop)."""
     rays = [spot_cast_rays(r.spots, camera, pose, options.spot_cast)
             for r, camera, pose in _views(runs)]
-    rays += [mesh_check_rays(r, options) for r, _, _ in _views(runs)]
+    rays += [*extra_rays, *(mesh_check_rays(r, options) for r, _, _ in _views(runs))]
     if caster.coverage is None or not rays:
         return caster
     o = np.concatenate([a for a, _ in rays])
@@ -423,9 +414,9 @@ def covering_caster(runs: Sequence[ImageRun], caster: MeshRaycaster, whole: Load
     points = mesh_check_points(runs, options, whole.model.extent)
     if caster.coverage.covers_rays(o, d).all() and caster.coverage.covers_points(points).all():
         return caster
-    crop = crop_mesh(runs, whole, options)
-    logger.info("mesh cropped again for the spots found where the model puts them: %d of %d "
-                "triangles", len(crop.triangles), crop.source_triangles)
+    crop = crop_mesh(runs, whole, options, extra_rays)
+    logger.info("mesh cropped again for the guided search: %d of %d triangles",
+                len(crop.triangles), crop.source_triangles)
     return crop.raycaster()
 
 
@@ -438,7 +429,7 @@ def _estimate_guided(run: ImageRun, before: ImageRun, loaded: LoadedInputs,
         return run
     try:
         return cast_and_estimate(run, loaded, caster, options, timer, field, mesh_offset)
-    except RuntimeError:  # covering_caster was not given the whole mesh
+    except RuntimeError:  # a ray covering_caster did not see (it should not happen)
         new = {s.laser for s in run.spots} - {s.laser for s in before.spots}
         why = "found where the model puts it, but its ray lies outside the mesh crop"
         return replace(before, spot_reasons={**before.spot_reasons,
@@ -446,14 +437,18 @@ def _estimate_guided(run: ImageRun, before: ImageRun, loaded: LoadedInputs,
 
 
 def guided_search(runs: Sequence[ImageRun], loaded: LoadedInputs, caster: MeshRaycaster,
-                  scale: float, options: ScaleOptions) -> list[ImageRun] | None:
+                  whole: LoadedInputs, scale: float, options: ScaleOptions
+                  ) -> tuple[list[ImageRun], MeshRaycaster] | None:
     """The runs with spots the detector missed found where the model puts them at ``scale``,
-    or with the reason they were not (None when the search is off, there is no scale yet, or
-    spots were given by hand)."""
+    or with the reason they were not, and a caster covering every ray they will cast (cropped
+    again from ``whole.mesh`` when needed). None when the search is off, there is no scale yet
+    or spots were given by hand."""
     if not options.guided.enabled or not np.isfinite(scale) or loaded.manual_spots:
         return None
+    caster = covering_caster(runs, caster, whole, options, _beam_rays(runs, loaded.rig, scale))
     offsets = _offsets(runs, loaded.rig, caster, scale, options)
-    return [_guided_run(r, loaded, caster, scale, offsets, options) for r in runs]
+    out = [_guided_run(r, loaded, caster, scale, offsets, options) for r in runs]
+    return out, covering_caster(out, caster, whole, options)
 
 
 def _observations(runs: Sequence[ImageRun]) -> list[ImageObservation]:
@@ -543,7 +538,7 @@ def _estimate_all(
         found = image_footprints(runs, loaded, options)
     with timer("raycast"):
         crop = crop_mesh(runs, loaded, options)
-        # the crop is all the rest needs, but for the guided search's spots (cropped for below)
+        # the crop is all the rest needs but the guided search, which crops again for its rays
         whole = loaded if options.guided.enabled and not loaded.manual_spots else None
         loaded = replace(loaded, mesh=None)
         trim_heap()
@@ -557,18 +552,15 @@ def _estimate_all(
         offset = shared_mesh_offset(runs, caster, field, options)
     runs = [cast_and_estimate(r, loaded, caster, options, timer, field, offset) for r in runs]
     fusion = fuse_all(runs, loaded.rig, options)
-    guided = None
-    if options.guided.enabled:
+    if whole is not None:
         with timer("guided"):
-            guided = guided_search(runs, loaded, caster, fusion.headline.value, options)
-    if guided is not None:
-        if whole is not None:
-            with timer("raycast"):
-                caster = covering_caster(guided, caster, whole, options)
-        runs = [_estimate_guided(g, r, loaded, caster, options, timer, field, offset)
-                for g, r in zip(guided, runs, strict=True)]
-    whole = None
-    trim_heap()
+            guided = guided_search(runs, loaded, caster, whole, fusion.headline.value, options)
+        if guided is not None:
+            searched, caster = guided
+            runs = [_estimate_guided(g, r, loaded, caster, options, timer, field, offset)
+                    for g, r in zip(searched, runs, strict=True)]
+        whole = None
+        trim_heap()
     for r in runs:
         logger.info("laser image %s: %s", r.name,
                     "estimated" if r.reason is None else f"no estimate ({r.reason})")
