@@ -11,22 +11,12 @@ import pytest
 from sfm_laserscale.detection import DetectionOptions, detect_spots
 from sfm_laserscale.detection.guided import GuidedOptions, detect_near
 from sfm_laserscale.guided_spots import laser_offsets, predict_spots
-from sfm_laserscale.model import Camera, Pose
+from sfm_laserscale.model import Pose
 from sfm_laserscale.raycast import MeshRaycaster
-from sfm_laserscale.rig import Rig, rig_from_dict
+from sfm_laserscale.rig import Rig
 from sfm_laserscale.synthetic.spots import paint_spot, to_uint8
-
-CAMERA = Camera(1, "PINHOLE", 1024, 768, np.array([900.0, 900.0, 512.0, 384.0]))
-WATER = (0.06, 0.30, 0.34)  # linear blue-green scene
-
-
-def _rig() -> Rig:
-    t = math.radians(2.0)
-    return rig_from_dict({"laser": [
-        {"name": "L1", "origin": [0.165, 0.0, 0.0], "direction": [-math.sin(t), 0.0, math.cos(t)],
-         "color": "green"},
-        {"name": "L2", "origin": [0.0, 0.165, 0.0], "direction": [0.0, -math.sin(t), math.cos(t)],
-         "color": "green"}]})
+from tests.test_detection_second_look import CAMERA, WATER
+from tests.test_detection_second_look import _rig as _two_green_lasers
 
 
 def _looking_down(centre: np.ndarray, tilt_deg: float) -> Pose:
@@ -57,7 +47,7 @@ def _true_spot(rig: Rig, name: str, pose: Pose, scale: float) -> tuple[float, fl
 
 @pytest.mark.parametrize(("scale", "tilt"), [(0.25, 0.0), (0.8, 12.0)])
 def test_the_predicted_spot_is_where_the_beam_meets_the_mesh(scale: float, tilt: float) -> None:
-    rig = _rig()
+    rig = _two_green_lasers()
     pose = _looking_down(np.array([0.7, -0.4, 9.0]), tilt)  # 9 model units up
     pred, why = predict_spots(CAMERA, pose, rig, ["L1", "L2"], _floor(), scale)
     assert not why
@@ -94,7 +84,7 @@ def _cluttered_image(l2_xy: tuple[float, float], rng: np.random.Generator) -> np
 
 
 def test_a_spot_lost_among_scene_blobs_is_found_where_the_model_puts_it() -> None:
-    rig = _rig()
+    rig = _two_green_lasers()
     las = rig.laser("L2")
     assert las.origin is not None and las.direction is not None
     xy = CAMERA.project((las.origin + 2.5 * las.direction)[None, :])[0]
@@ -119,7 +109,7 @@ def test_the_overlay_names_a_guided_spot_and_drops_its_laser_near_misses() -> No
     from sfm_laserscale.model import Spot
     from sfm_laserscale.report.overlays import _legend_entries, draw_overlay
 
-    rig = _rig()
+    rig = _two_green_lasers()
     spots = [Spot("L2", 512.0, 412.0, source="guided")]
     texts = [t for _, _, t in _legend_entries(rig, spots, {"L2": 0.3}, {}, None)]
     assert texts[:2] == ["L1 not found", "L2 s=0.3 (where the model puts it)"]

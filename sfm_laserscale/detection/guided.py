@@ -103,15 +103,16 @@ def evidence(m: Measure, colour_floor: float) -> float:
 
 def _best(measures: list[Measure], xy: tuple[float, float], guided: GuidedOptions
           ) -> tuple[Measure | None, str]:
-    """The highest-evidence valid candidate within ``radius`` of ``xy``, or why there is none."""
+    """The highest-evidence valid candidate within ``guided.radius_px`` of ``xy``, or why there
+    is none."""
     radius = guided.radius_px
     near = [m for m in measures if math.hypot(m.x - xy[0], m.y - xy[1]) <= radius]
     valid = [m for m in near if m.rejected is None]
     if valid:
         return max(valid, key=lambda m: evidence(m, guided.colour_floor)), ""
     if not near:
-        return None, f"no local maximum of its light within {radius:g} px of ({xy[0]:.1f}, " \
-                     f"{xy[1]:.1f}), where the model puts its spot"
+        return None, (f"no local maximum of its light within {radius:g} px of "
+                      f"({xy[0]:.1f}, {xy[1]:.1f}), where the model puts its spot")
     closest = min(near, key=lambda m: math.hypot(m.x - xy[0], m.y - xy[1]))
     return None, (f"the maximum at ({closest.x:.1f}, {closest.y:.1f}), near where the model puts "
                   f"its spot, is {closest.rejected}")
