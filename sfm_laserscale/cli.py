@@ -126,6 +126,8 @@ def main(ctx: click.Context, debug: bool) -> None:
 
 
 _path = click.Path(path_type=Path)
+_NO_GUIDED_HELP = ("Do not search for missed spots where the model and the first scale put "
+                   "them (docs/DETECTION.md).")
 
 
 @main.command(cls=GreedyCommand)
@@ -175,8 +177,7 @@ _path = click.Path(path_type=Path)
 )
 @click.option("--reuse-model-poses", is_flag=True, help="A laser image that is also a model "
               "image takes the model's pose instead of being registered.")
-@click.option("--no-guided-spots", is_flag=True, help="Do not search for missed spots where "
-              "the model and the first scale put them (docs/DETECTION.md).")
+@click.option("--no-guided-spots", is_flag=True, help=_NO_GUIDED_HELP)
 @click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
 @common_options
 def scale(**kw: Any) -> int:
@@ -419,6 +420,7 @@ def pipeline_run_options(func: Callable[..., Any]) -> Callable[..., Any]:
                      show_default=True),
         click.option("--seed", type=int, default=0, show_default=True),
         click.option("--workers", type=click.IntRange(min=0), help=_WORKERS_HELP),
+        click.option("--no-guided-spots", is_flag=True, help=_NO_GUIDED_HELP),
         click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder."),
     )):
         func = option(func)
@@ -483,11 +485,13 @@ def colmap(**kw: Any) -> int:
 
 
 def _scale_options(kw: dict[str, Any]) -> Any:
+    from sfm_laserscale.guided_spots import GuidedSpotOptions
     from sfm_laserscale.registration.sift_workers import SiftWorkerOptions
     from sfm_laserscale.run_types import ScaleOptions
 
     return ScaleOptions(method=kw["method"], seed=kw["seed"], progress=not kw["quiet"],
-                        sift_workers=SiftWorkerOptions(workers=kw["workers"]))
+                        sift_workers=SiftWorkerOptions(workers=kw["workers"]),
+                        guided=GuidedSpotOptions(enabled=not kw["no_guided_spots"]))
 
 
 @main.command(cls=_PipelineCommand)

@@ -4,6 +4,8 @@ around that point (a spot too faint for the band's competition is found there)."
 from __future__ import annotations
 
 import math
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -133,3 +135,27 @@ def test_near_a_prediction_colour_counts_at_least_the_floor() -> None:
     assert evidence(m, 0.0) == pytest.approx(0.6 * 0.9 * 0.05)
     m.whitened = True  # a clipped core whose rim reads white
     assert evidence(m, 0.0) == pytest.approx(0.6 * 0.9)
+
+
+@pytest.mark.parametrize("flag", [(), ("--no-guided-spots",)])
+def test_the_pipeline_commands_pass_the_guided_search_switch_to_scale(
+        flag: tuple[str, ...], monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from click.testing import CliRunner
+
+    import sfm_laserscale.commands.colmap as colmap_cmd
+    from sfm_laserscale.cli import main
+
+    seen = {}
+
+    def fake_run(inputs: object, out: object, options: Any, overwrite: bool = False) -> Any:
+        seen["guided"] = options.scale.guided.enabled
+        return SimpleNamespace(summary="stub", scale=SimpleNamespace(success=True))
+
+    monkeypatch.setattr(colmap_cmd, "run", fake_run)
+    args = ["colmap", "--images", str(tmp_path), "--laser-images", str(tmp_path), "--rig",
+            str(tmp_path / "rig.toml"), "--out", str(tmp_path / "out"), "--quiet", *flag]
+    result = CliRunner().invoke(main, args, catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    assert seen["guided"] is (not flag)
