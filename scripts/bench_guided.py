@@ -13,7 +13,7 @@ band at least 12 px from its true spot.
 without the guided search; spots are scored against the truth (found within 1.5 px).
 
     python scripts/bench_guided.py frames --per-condition 8 --seed 0
-    python scripts/bench_guided.py surveys --seeds 0-5 --rig-error-scale 0
+    python scripts/bench_guided.py surveys --seeds 0-5 --rig-error-scale 0 [--size 1920x1080]
 """
 
 from __future__ import annotations
@@ -169,7 +169,7 @@ class PredictionRecorder:
 
 
 def survey_one(seed: int, rig_error_scale: float, work: Path,
-               prediction_errors: list[float]) -> str:
+               prediction_errors: list[float], size: tuple[int, int] = (960, 540)) -> str:
     """One survey's Markdown row: spots and scale error without and with the guided search
     (the guided run's prediction errors are appended to ``prediction_errors``)."""
     import json
@@ -181,7 +181,8 @@ def survey_one(seed: int, rig_error_scale: float, work: Path,
     from sfm_laserscale.synthetic.underwater.survey import SurveyOptions, make_survey
 
     s = make_survey(work / f"survey_{seed}", SurveyOptions(
-        seed=seed, rig_error_scale=rig_error_scale, progress=False))
+        width=size[0], height=size[1], seed=seed, rig_error_scale=rig_error_scale,
+        progress=False))
     truth = json.loads(s.truth_path.read_text())
     inputs = resolve_scale_inputs(GivenInputs(
         laser_images=(s.laser_images_dir,), rig=s.rig_path, model=s.model_dir, mesh=s.mesh_path,
@@ -226,6 +227,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     sv = sub.add_parser("surveys")
     sv.add_argument("--seeds", type=_seeds, default=list(range(6)))
     sv.add_argument("--rig-error-scale", type=float, default=0.0)
+    sv.add_argument("--size", default="960x540", help="the survey's images, WxH")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     if a.what == "frames":
@@ -238,7 +240,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         errors: list[float] = []
         with tempfile.TemporaryDirectory() as tmp:
             for seed in a.seeds:
-                print(survey_one(seed, a.rig_error_scale, Path(tmp), errors), flush=True)
+                size = tuple(int(v) for v in a.size.split("x"))
+                print(survey_one(seed, a.rig_error_scale, Path(tmp), errors,
+                                 (size[0], size[1])), flush=True)
         if errors:
             print(f"\nPredictions of the lasers searched, against their true spots: "
                   f"{len(errors)}, median {np.median(errors):.2f} px, p90 "
