@@ -33,9 +33,10 @@ from sfm_laserscale.run_types import ImageRun, ScaleOptions
 F64 = NDArray[np.float64]
 
 
-def _registered(run: ImageRun) -> tuple[Camera, Pose] | None:
+def registered_view(run: ImageRun) -> tuple[Camera, Pose] | None:
+    """Camera and cam_from_world of a registered image (whatever became of its spots)."""
     reg = run.registration
-    if run.camera is None or reg is None or reg.cam_from_world is None:
+    if run.camera is None or reg is None or not reg.success or reg.cam_from_world is None:
         return None
     return run.camera, reg.cam_from_world
 
@@ -43,7 +44,7 @@ def _registered(run: ImageRun) -> tuple[Camera, Pose] | None:
 def mesh_check_rays(run: ImageRun, options: ScaleOptions) -> tuple[F64, F64]:
     """The rays camera -> model points around the spots that the mesh check will cast (the
     mesh crop must cover them)."""
-    view, reg = _registered(run), run.registration
+    view, reg = registered_view(run), run.registration
     if not options.mesh_error.enabled or view is None or reg is None or not run.spots:
         return np.zeros((0, 3)), np.zeros((0, 3))
     xy = np.array([[s.x, s.y] for s in run.spots], dtype=np.float64)
@@ -57,7 +58,7 @@ def intrinsics_field(read_model: Callable[[], SparseModel], runs: Sequence[Image
     ``read_model`` gives the model again with its observations (the run dropped them after the
     index): read from its file, or the one given in memory."""
     ids = [r.registration.inlier_point3D_ids for r in runs
-           if r.reason is None and r.registration is not None and _registered(r) is not None]
+           if r.reason is None and r.registration is not None and registered_view(r) is not None]
     if not ids:
         return None
     return analyse_intrinsics(read_model, np.concatenate(ids),
@@ -77,7 +78,7 @@ class ModelInputs:
 def _check(run: ImageRun, hits: tuple[SpotHit, ...], caster: MeshRaycaster,
            field: IntrinsicsField | None, options: ScaleOptions) -> tuple[Camera, Pose, Any]:
     """The mesh check of one registered image's hits."""
-    view, reg = _registered(run), run.registration
+    view, reg = registered_view(run), run.registration
     if view is None or reg is None:
         raise ValueError(f"image {run.name}: the mesh check needs a registered image")
     camera, pose = view
@@ -95,7 +96,7 @@ def shared_mesh_offset(runs: Sequence[ImageRun], caster: MeshRaycaster,
     mesh check over the registered images: mesh_error.shared_offset)."""
     spots: list[SpotMeshError] = []
     for r in runs:
-        view = _registered(r)
+        view = registered_view(r)
         if r.reason is not None or view is None or not r.spots or not options.mesh_error.enabled:
             continue
         cast = cast_spots(r.spots, view[0], view[1], caster, options.spot_cast)
@@ -109,7 +110,7 @@ def model_inputs(run: ImageRun, hits: tuple[SpotHit, ...], caster: MeshRaycaster
                  shared: SharedOffset | None = None) -> ModelInputs:
     """Each hit's mesh σ (with its check; the ``shared`` offset apart, as a direction common to
     every image) and the model intrinsics' directions of one image."""
-    view, reg = _registered(run), run.registration
+    view, reg = registered_view(run), run.registration
     if view is None or reg is None:
         return ModelInputs()
     hit_xyz = np.array([h.hit_world for h in hits], dtype=np.float64).reshape(-1, 3)
@@ -141,7 +142,7 @@ def check_model(headline: FusedScale, methods: dict[str, FusedScale], joint: boo
     than the model's own σ), every method with the focal-corrected scale added, the checks."""
     if not options.model_checks.enabled or not math.isfinite(headline.value):
         return headline, methods, None
-    centres = {r.name: v[1].center for r in runs if (v := _registered(r)) is not None}
+    centres = {r.name: v[1].center for r in runs if (v := registered_view(r)) is not None}
     model_centres = np.array([im.cam_from_world.center for im in model.images.values()])
     checks = run_model_checks([r.estimates for r in runs if r.estimates is not None], methods,
                               headline, joint, centres, model_centres, focal_sigma(runs, field),

@@ -62,6 +62,7 @@ from sfm_laserscale.model_stage import (
     intrinsics_field,
     mesh_check_rays,
     model_inputs,
+    registered_view,
     shared_mesh_offset,
 )
 from sfm_laserscale.provenance import (
@@ -338,21 +339,13 @@ def cast_and_estimate(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster
                    observation=obs, mesh_errors=extra.mesh_errors)
 
 
-def _registered(run: ImageRun) -> tuple[Camera, Pose] | None:
-    """Camera and cam_from_world of a registered image (whatever became of its spots)."""
-    reg = run.registration
-    if run.camera is None or reg is None or not reg.success or reg.cam_from_world is None:
-        return None
-    return run.camera, reg.cam_from_world
-
-
 def _beam_rays(runs: Sequence[ImageRun], rig: Rig,
                scale: float) -> list[tuple[np.ndarray, np.ndarray]]:
     """Every calibrated beam of every registered image as a model-frame ray at ``scale``."""
     names = [las.name for las in rig.lasers if las.calibrated]
     out = []
     for r in runs:
-        if (view := _registered(r)) is not None:
+        if (view := registered_view(r)) is not None:
             b = beam_rays(view[1], rig, names, scale)
             out.append((b.origins, b.directions))
     return out
@@ -364,7 +357,7 @@ def _offsets(runs: Sequence[ImageRun], rig: Rig, caster: MeshRaycaster, scale: f
     pairs = []
     for r in runs:
         own = [s for s in r.spots if s.source == "detected"]
-        if (view := _registered(r)) is None or not own:
+        if (view := registered_view(r)) is None or not own:
             continue
         pred, _ = predict_spots(*view, rig, [s.laser for s in own], caster, scale)
         pairs += [(s.laser, s.x, s.y, *pred[s.laser]) for s in own if s.laser in pred]
@@ -375,7 +368,7 @@ def _guided_run(run: ImageRun, loaded: LoadedInputs, caster: MeshRaycaster, scal
                 offsets: dict[str, tuple[float, float]], options: ScaleOptions) -> ImageRun:
     """One registered image's missing calibrated lasers searched where the model puts them;
     with new spots it comes back without hits or estimates (and without a reason)."""
-    view = _registered(run)
+    view = registered_view(run)
     have = {s.laser for s in run.spots}
     missing = [las.name for las in loaded.rig.lasers if las.calibrated and las.name not in have]
     if view is None or not missing:
