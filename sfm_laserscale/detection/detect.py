@@ -23,44 +23,15 @@ from sfm_laserscale.detection.assign import (
 from sfm_laserscale.detection.beams import SearchRegion, search_region
 from sfm_laserscale.detection.candidates import Measure, candidates_for_colour
 from sfm_laserscale.detection.explain import explain_missing
+from sfm_laserscale.detection.floor import PLACE, floor_search
+from sfm_laserscale.detection.inputs import check_image, colours_needed, group_rgb
 from sfm_laserscale.detection.options import Candidate, DetectionOptions, DetectionResult
-from sfm_laserscale.detection.response import CHANNELS, crop_channels
-from sfm_laserscale.errors import InputError
-from sfm_laserscale.laser_color import DEFAULT_RGB
+from sfm_laserscale.detection.response import crop_channels
 from sfm_laserscale.memory import trim_heap
 from sfm_laserscale.model import Camera, Spot
 from sfm_laserscale.rig import Rig
 
 logger = logging.getLogger(__name__)
-
-
-def check_image(image_rgb: NDArray[np.uint8], camera: Camera) -> None:
-    """Validate the image against its camera (shape, size, dtype)."""
-    if image_rgb.ndim != 3 or image_rgb.shape[2] != 3:
-        raise InputError(f"laser image must be RGB (H, W, 3), got shape {image_rgb.shape}")
-    if image_rgb.shape[:2] != (camera.height, camera.width):
-        raise InputError(
-            f"laser image is {image_rgb.shape[1]}x{image_rgb.shape[0]} px but its camera is "
-            f"{camera.width}x{camera.height} px")
-    if image_rgb.dtype != np.uint8:
-        raise InputError(f"laser image must be 8-bit (uint8), got {image_rgb.dtype}")
-
-
-def colours_needed(rig: Rig) -> list[str]:
-    """Laser channels to search, in channel order ("any" needs all three)."""
-    wanted = {las.color for las in rig.lasers}
-    if "any" in wanted:
-        return list(CHANNELS)
-    return [c for c in CHANNELS if c in wanted]
-
-
-def group_rgb(rig: Rig, color: str) -> tuple[float, float, float]:
-    """Expected colour of a channel's lasers: the mean of theirs, or the channel's default."""
-    rgbs = [las.expected_rgb for las in rig.lasers if las.color == color and las.expected_rgb]
-    if not rgbs:
-        return DEFAULT_RGB[color]
-    mean = np.mean(np.asarray(rgbs), axis=0)
-    return (float(mean[0]), float(mean[1]), float(mean[2]))
 
 
 def _measure_candidates(image_rgb: NDArray[np.uint8], rig: Rig, region: SearchRegion,
@@ -84,6 +55,25 @@ def _candidate(m: Measure) -> Candidate:
                      evidence=tuple(m.evidence.items()), clutter_ratio=m.clutter_ratio)
 
 
+def _on_floor(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region: SearchRegion,
+              taken: dict[str, Measure], missing: dict[str, str], options: DetectionOptions
+              ) -> dict[str, Measure]:
+    """Spots found where the floor through the ``taken`` ones puts them (:mod:`.floor`),
+    marked assigned; ``missing`` loses their lasers and gains the search's reason for others."""
+    found = {}
+    spots_px = {name: (m.x, m.y) for name, m in taken.items()}
+    for name, find in floor_search(image_rgb, camera, rig, region, spots_px, options).items():
+        if find.measure is None:
+            missing[name] = f"{missing.get(name, 'no spot')}; {PLACE}: {find.why}"
+            continue
+        m = find.measure
+        m.score, m.laser = find.score, name
+        m.reason = f"assigned to {name}: {PLACE}"
+        found[name] = m
+        missing.pop(name, None)
+    return found
+
+
 def detect_spots(
     image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
     options: DetectionOptions = DetectionOptions(),  # noqa: B008 (frozen dataclass)
@@ -103,12 +93,17 @@ def detect_spots(
     missing.update(missing_u)
     explain_unused(rig, valid, dist, region.band_px, options)
     shown = explain_missing(rig, measures, region, set(chosen), missing, options)
+    on_floor = _on_floor(image_rgb, camera, rig, region, {n: valid[j] for n, j in chosen.items()},
+                         missing, options)
+    for name in on_floor:
+        shown.pop(name, None)
+    taken = {name: valid[j] for name, j in chosen.items()} | on_floor
     spots = tuple(
-        Spot(laser=name, x=valid[j].x, y=valid[j].y, score=float(np.clip(valid[j].score, 0, 1)),
-             sigma_px=valid[j].sigma_px, source="detected")
-        for name in rig.names if (j := chosen.get(name)) is not None
+        Spot(laser=name, x=m.x, y=m.y, score=float(np.clip(m.score, 0, 1)),
+             sigma_px=m.sigma_px, source="detected")
+        for name in rig.names if (m := taken.get(name)) is not None
     )
-    candidates = tuple(_candidate(m) for m in measures)
+    candidates = tuple(_candidate(m) for m in [*measures, *on_floor.values()])
     index = {id(m): i for i, m in enumerate(measures)}
     near = {name: tuple(candidates[index[id(m)]] for m in ms) for name, ms in shown.items()}
     logger.debug("%d candidates, %d spots, missing: %s", len(candidates), len(spots), missing)

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from sfm_laserscale.detection.beams import SearchRegion, default_max_spot_radius_px
 from sfm_laserscale.detection.candidates import Measure, candidates_for_colour
-from sfm_laserscale.detection.detect import check_image, group_rgb
+from sfm_laserscale.detection.inputs import check_image, group_rgb
 from sfm_laserscale.detection.joint import CLIPPED_COLOUR
 from sfm_laserscale.detection.options import DetectionOptions
 from sfm_laserscale.detection.response import CHANNELS, crop_channels
@@ -83,7 +83,7 @@ def _window(camera: Camera, xy: tuple[float, float], reach: int) -> tuple[int, i
 
 def _region(camera: Camera, xy: tuple[float, float], radius: float, max_radius: float,
             options: DetectionOptions) -> SearchRegion:
-    """The window searched around a prediction: maxima within ``radius`` (+1 px) of it."""
+    """The image searched around a prediction: maxima within ``radius`` (+1 px) of it."""
     reach = int(math.ceil(radius + 2.0 * max_radius + 4.0 * max(options.spot_sigmas_px) + 8.0))
     roi = _window(camera, xy, reach)
     x0, y0, x1, y1 = roi
@@ -93,40 +93,50 @@ def _region(camera: Camera, xy: tuple[float, float], radius: float, max_radius: 
     return SearchRegion(roi, {}, {}, near, radius, max_radius)
 
 
-def evidence(m: Measure, colour_floor: float) -> float:
-    """A candidate's evidence without the clutter term, its colour term at least
+def evidence_terms(m: Measure, colour_floor: float) -> dict[str, float]:
+    """A candidate's evidence terms without the clutter term, its colour term at least
     ``colour_floor`` (whitened clipped cores: colour 1)."""
     terms = {k: v for k, v in m.terms.items() if k != "clutter"}
-    colour = CLIPPED_COLOUR if m.whitened else max(m.colour.term, colour_floor)
-    return float(np.prod(list(terms.values()))) * colour if terms else 0.0
+    if not terms:
+        return {}
+    return terms | {"colour": CLIPPED_COLOUR if m.whitened else max(m.colour.term, colour_floor)}
 
 
-def _best(measures: list[Measure], xy: tuple[float, float], guided: GuidedOptions
-          ) -> tuple[Measure | None, str]:
-    """The highest-evidence valid candidate within ``guided.radius_px`` of ``xy``, or why there
-    is none."""
-    radius = guided.radius_px
+def evidence(m: Measure, colour_floor: float) -> float:
+    """The product of :func:`evidence_terms` (0 without terms)."""
+    terms = evidence_terms(m, colour_floor)
+    return float(np.prod(list(terms.values()))) if terms else 0.0
+
+
+MODEL_PLACE = "where the model puts its spot"
+
+
+def _best(measures: list[Measure], xy: tuple[float, float], radius: float, guided: GuidedOptions,
+          place: str) -> tuple[Measure | None, str]:
+    """The highest-evidence valid candidate within ``radius`` px of ``xy``, or why there is none
+    (``place`` names the point, e.g. "where the model puts its spot")."""
     near = [m for m in measures if math.hypot(m.x - xy[0], m.y - xy[1]) <= radius]
     valid = [m for m in near if m.rejected is None]
     if valid:
         return max(valid, key=lambda m: evidence(m, guided.colour_floor)), ""
     if not near:
-        return None, (f"no local maximum of its light within {radius:g} px of "
-                      f"({xy[0]:.1f}, {xy[1]:.1f}), where the model puts its spot")
+        return None, (f"no local maximum of its light within {radius:.1f} px of "
+                      f"({xy[0]:.1f}, {xy[1]:.1f}), {place}")
     closest = min(near, key=lambda m: math.hypot(m.x - xy[0], m.y - xy[1]))
-    return None, (f"the maximum at ({closest.x:.1f}, {closest.y:.1f}), near where the model puts "
-                  f"its spot, is {closest.rejected}")
+    return None, (f"the maximum at ({closest.x:.1f}, {closest.y:.1f}), near {place}, is "
+                  f"{closest.rejected}")
 
 
-def detect_near_one(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, laser: str,
-                    xy: tuple[float, float], options: DetectionOptions,
-                    guided: GuidedOptions) -> tuple[Spot | None, str]:
-    """One laser's spot within ``guided.radius_px`` of the COLMAP point ``xy``, or why not."""
+def search_near(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, laser: str,
+                xy: tuple[float, float], options: DetectionOptions, guided: GuidedOptions,
+                place: str = MODEL_PLACE) -> tuple[Measure | None, float, str]:
+    """The candidate taken for ``laser`` within ``guided.radius_px`` of the COLMAP point ``xy``
+    and its evidence, or (None, 0, why not); ``place`` names the point in the reasons."""
     las = rig.laser(laser)
     max_radius = options.max_spot_radius_px or default_max_spot_radius_px(
         camera.width, camera.height)
     if not (0 <= xy[0] <= camera.width and 0 <= xy[1] <= camera.height):
-        return None, f"the model puts its spot at ({xy[0]:.1f}, {xy[1]:.1f}), outside the image"
+        return None, 0.0, f"({xy[0]:.1f}, {xy[1]:.1f}), {place}, is outside the image"
     region = _region(camera, xy, guided.radius_px, max_radius, options)
     ungated = replace(options, min_clutter_ratio=0.0, second_look_clutter_ratio=0.0,
                       min_snr=options.min_snr if guided.min_snr is None else guided.min_snr)
@@ -134,13 +144,24 @@ def detect_near_one(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, lase
     colours = list(CHANNELS) if las.color == "any" else [las.color]
     measures = [m for c in colours
                 for m in candidates_for_colour(channels, c, ungated, region, group_rgb(rig, c))]
-    best, why = _best(measures, xy, guided)
+    best, why = _best(measures, xy, guided.radius_px, guided, place)
     if best is None:
-        return None, why
+        return None, 0.0, why
     score = evidence(best, guided.colour_floor)
     if score < guided.min_score:
-        return None, (f"the best candidate near where the model puts its spot, at "
-                      f"({best.x:.1f}, {best.y:.1f}), scores {score:.2f} < {guided.min_score:g}")
+        return None, 0.0, (f"the best candidate near {place}, at ({best.x:.1f}, {best.y:.1f}), "
+                           f"scores {score:.2f} < {guided.min_score:g}")
+    best.evidence = evidence_terms(best, guided.colour_floor)
+    return best, score, ""
+
+
+def detect_near_one(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, laser: str,
+                    xy: tuple[float, float], options: DetectionOptions,
+                    guided: GuidedOptions) -> tuple[Spot | None, str]:
+    """One laser's spot within ``guided.radius_px`` of the COLMAP point ``xy``, or why not."""
+    best, score, why = search_near(image_rgb, camera, rig, laser, xy, options, guided)
+    if best is None:
+        return None, why
     return Spot(laser=laser, x=best.x, y=best.y, score=float(min(score, 1.0)),
                 sigma_px=best.sigma_px, source="guided"), ""
 

@@ -69,6 +69,15 @@ class DetectionOptions:
       whose black/white edges through a spot look like light of the target's colour).
     - ``min_score``: an assigned spot with a lower score is reported in ``missing`` instead.
 
+    Where the other spots put a missing one (:mod:`.floor`):
+
+    - ``floor_search``: a calibrated laser left without a spot is searched where the floor
+      through the other lasers' spots (a plane) meets its beam.
+    - ``floor_min_spots``: spots of other calibrated lasers needed for that plane (>= 2).
+    - ``floor_radius_px``: largest distance of such a spot from that point; None = 0.14 % of
+      the image diagonal (3.1 px at 1920×1080, 7 px at 4000×3000): the floor's relief and the
+      rig's calibration error move a spot in proportion to the focal length.
+
     Sub-pixel centre:
 
     - ``refine``: "centroid" (Gaussian-windowed centroid iterated to its fixed point, the
@@ -97,6 +106,9 @@ class DetectionOptions:
     colour_tau: float = 0.07
     colour_evidence: bool = True
     min_score: float = 0.25
+    floor_search: bool = True
+    floor_min_spots: int = 2
+    floor_radius_px: float | None = None
     refine: str = "centroid"
     sigma_floor_px: float = 0.1
     sigma_window_gain: float = 0.5
@@ -127,7 +139,9 @@ class DetectionOptions:
                 raise InputError(f"{name} must be positive, got {getattr(self, name)}")
         if not self.spot_sigmas_px or min(self.spot_sigmas_px) <= 0:
             raise InputError("spot_sigmas_px must be positive")
-        for name in ("band_px", "max_spot_radius_px"):
+        if self.floor_min_spots < 2:
+            raise InputError(f"floor_min_spots must be >= 2, got {self.floor_min_spots}")
+        for name in ("band_px", "max_spot_radius_px", "floor_radius_px"):
             value = getattr(self, name)
             if value is not None and value <= 0:
                 raise InputError(f"{name} must be positive, got {value}")

@@ -1,0 +1,133 @@
+"""The floor search: where the spots found in one image put a missing laser's spot (closed form
+on planes), and the search there (a spot the band's blobs hide is found, a reason otherwise)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sfm_laserscale.detection import DetectionOptions, detect_spots
+from sfm_laserscale.detection.beams import search_region
+from sfm_laserscale.detection.floor import (
+    PLACE,
+    beam_range_on_plane,
+    floor_plane,
+    floor_predictions,
+)
+from sfm_laserscale.errors import InputError
+from sfm_laserscale.rig import Rig, rig_from_dict
+from sfm_laserscale.synthetic.spots import paint_spot, to_uint8
+from tests.test_detection_second_look import CAMERA, WATER
+
+RANGES = (0.5, 10.0)
+
+
+def _rig() -> Rig:
+    """Four green beams 0.15 m from the camera, parallel to its axis; no two of their image lines
+    coincide (opposite beams on one line would share a band)."""
+    direction = [0.0, 0.0, 1.0]
+    return rig_from_dict({"laser": [
+        {"name": f"L{i + 1}", "origin": [0.15 * math.cos(a), 0.15 * math.sin(a), 0.0],
+         "direction": direction, "color": "green"}
+        for i, a in enumerate(np.radians([10.0, 100.0, 225.0, 300.0]))]})
+
+
+def _spot(rig: Rig, name: str, normal: np.ndarray, point: np.ndarray) -> tuple[float, float]:
+    """Closed form: the beam meets the plane (normal, point), projected."""
+    las = rig.laser(name)
+    assert las.origin is not None and las.direction is not None
+    r = float(normal @ (point - las.origin)) / float(normal @ las.direction)
+    xy = CAMERA.project((las.origin + r * las.direction)[None, :])[0]
+    return float(xy[0]), float(xy[1])
+
+
+def _spots(normal: tuple[float, float, float], depth_m: float) -> dict[str, tuple[float, float]]:
+    n = np.asarray(normal, float) / np.linalg.norm(normal)
+    rig = _rig()
+    return {name: _spot(rig, name, n, np.array([0.0, 0.0, depth_m])) for name in rig.names}
+
+
+def _predict(found: dict[str, tuple[float, float]]) -> dict[str, tuple[float, float]]:
+    rig = _rig()
+    return floor_predictions(CAMERA, rig, search_region(CAMERA, rig, DetectionOptions()), found,
+                             2, RANGES)
+
+
+@pytest.mark.parametrize(("normal", "depth"), [((0.2, -0.3, 1.0), 2.5), ((-0.5, 0.4, 1.0), 4.0)])
+def test_three_spots_put_the_fourth_where_its_beam_meets_their_plane(
+        normal: tuple[float, float, float], depth: float) -> None:
+    truth = _spots(normal, depth)
+    got = _predict({k: truth[k] for k in ("L1", "L2", "L3")})
+    assert set(got) == {"L4"} and math.dist(got["L4"], truth["L4"]) < 1e-3
+
+
+def test_two_spots_take_the_least_tilted_plane_through_their_chord() -> None:
+    rig = _rig()
+    o1, o3 = (rig.laser(n).origin for n in ("L1", "L3"))
+    assert o1 is not None and o3 is not None
+    chord = o3 - o1  # the spots' chord is this plus a multiple of the beams' direction z
+    across = np.cross([0.0, 0.0, 1.0], chord)
+    tilted_along_chord = _spots(tuple(np.cross(chord + [0, 0, 0.3], across)), 3.0)
+    got = _predict({k: tilted_along_chord[k] for k in ("L1", "L3")})
+    assert set(got) == {"L2", "L4"}
+    for name in ("L2", "L4"):
+        assert math.dist(got[name], tilted_along_chord[name]) < 1e-3
+    # a tilt across the chord is invisible to two spots: they give the level plane through them
+    unit_across = across / np.linalg.norm(across)
+    tilted_across = _spots(tuple(0.4 * unit_across + [0, 0, 1.0]), 3.0)
+    got = _predict({k: tilted_across[k] for k in ("L1", "L3")})
+    level = _spots((0.0, 0.0, 1.0), 3.0 - 0.4 * float(unit_across @ o1))
+    for name in ("L2", "L4"):
+        assert math.dist(got[name], level[name]) < 1e-3
+        assert math.dist(got[name], tilted_across[name]) > 0.5
+
+
+def test_planes_and_ranges_that_do_not_exist() -> None:
+    assert floor_plane(np.zeros((1, 3))) is None
+    assert floor_plane(np.array([[0, 0, 1.0], [1, 0, 1.0], [2, 0, 1.0]])) is None  # collinear
+    assert floor_plane(np.array([[0, 0, 1.0], [0, 0, 2.0]])) is None  # chord on the axis
+    z = np.array([0.0, 0.0, 1.0])
+    assert beam_range_on_plane(np.zeros(3), z, np.array([0, 0, 2.0]), z) == pytest.approx(2.0)
+    assert beam_range_on_plane(np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 0, 2.0]),
+                               z) is None  # parallel
+    assert beam_range_on_plane(np.zeros(3), z, np.array([0, 0, -2.0]), z) is None  # behind
+    assert _predict({"L1": (500.0, 384.0)}) == {}  # one spot gives no plane
+    with pytest.raises(InputError, match="floor_min_spots"):
+        DetectionOptions(floor_min_spots=1)
+
+
+def _image(spots: dict[str, tuple[float, float]], faint: str | None,
+           rng: np.random.Generator) -> np.ndarray:
+    """Bright spots for every laser but ``faint`` (a 20th of their peak; None: no spot of L4 at
+    all), and 400 green specks brighter than the faint one all over the image."""
+    img = np.empty((CAMERA.height, CAMERA.width, 3), np.float32)
+    img[:] = WATER
+    img += rng.normal(0.0, 0.004, img.shape).astype(np.float32)
+    for _ in range(400):
+        x, y = rng.uniform(0, CAMERA.width), rng.uniform(0, CAMERA.height)
+        if min(math.dist((x, y), xy) for xy in spots.values()) > 30:
+            paint_spot(img, (x, y), "green", sigma_px=1.5, peak=float(rng.uniform(0.1, 0.3)))
+    for name, xy in spots.items():
+        if name != "L4" or faint == "L4":
+            paint_spot(img, xy, "green", sigma_px=1.5, peak=0.08 if name == faint else 1.6)
+    return to_uint8(img, 2.2)
+
+
+def test_a_spot_the_band_hides_is_found_where_the_other_spots_floor_puts_it() -> None:
+    truth = _spots((0.25, -0.2, 1.0), 2.8)
+    image = _image(truth, "L4", np.random.default_rng(5))
+    rig = _rig()
+    band_only = detect_spots(image, CAMERA, rig, DetectionOptions(floor_search=False))
+    assert {s.laser for s in band_only.spots} == {"L1", "L2", "L3"}  # the specks hide L4
+    res = detect_spots(image, CAMERA, rig)
+    got = {s.laser: s for s in res.spots}
+    assert set(got) == {"L1", "L2", "L3", "L4"} and "L4" not in res.missing
+    assert math.dist((got["L4"].x, got["L4"].y), truth["L4"]) < 0.3
+    taken = [c for c in res.candidates if c.laser == "L4"]
+    assert len(taken) == 1 and PLACE in taken[0].reason and "L4" not in res.near_misses
+    # no spot of L4 at all: nothing taken, and its reason says what the floor search saw
+    empty = detect_spots(_image(truth, None, np.random.default_rng(5)), CAMERA, rig)
+    assert "L4" not in {s.laser for s in empty.spots}
+    assert PLACE in empty.missing["L4"]
