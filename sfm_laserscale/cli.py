@@ -535,13 +535,15 @@ def openmvg(**kw: Any) -> int:
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--overwrite", is_flag=True, help="Redo models whose inputs and options are "
               "unchanged (skipped otherwise).")
+@click.option("--no-guided-spots", is_flag=True, help=_NO_GUIDED_HELP)
 @common_options
 def batch(**kw: Any) -> int:
     """Scale every model of a manifest (CSV) on Dask; one failed model never stops the others."""
     from sfm_laserscale.commands.batch import BatchInputs, BatchOptions, run
 
     options = BatchOptions(jobs=kw["jobs"], scheduler=kw["scheduler"], method=kw["method"],
-                           seed=kw["seed"], progress=not kw["quiet"])
+                           seed=kw["seed"], progress=not kw["quiet"],
+                           guided_spots=not kw["no_guided_spots"])
     result = run(BatchInputs(kw["manifest"]), kw["out"], options, overwrite=kw["overwrite"])
     click.echo(result.summary)
     return EXIT_OK if result.all_scaled else EXIT_NO_SCALE

@@ -110,6 +110,15 @@ def test_batch_scales_the_others_reports_the_broken_one_and_skips_on_rerun(
     code, _ = _batch(str(cruise / "manifest.csv"), "--out", str(out), "--jobs", "1")
     assert _summary(out)["roof"]["status"] == "ok" and not stale.exists()
 
+    # --no-guided-spots changes the options that decide the numbers: redone, without the search
+    code, _ = _batch(str(cruise / "manifest.csv"), "--out", str(out), "--jobs", "1",
+                     "--no-guided-spots")
+    assert _summary(out)["roof"]["status"] == "ok"
+    ran = json.loads((out / "roof" / "report.json").read_text())["provenance"]["options"]
+    assert ran["guided"]["enabled"] is False
+    shutil.rmtree(out / "roof")
+    code, _ = _batch(str(cruise / "manifest.csv"), "--out", str(out), "--jobs", "1")
+
     # what a rerun compares: any input file's bytes, and the options that change numbers
     from sfm_laserscale.batch.job import ModelJob, _given, scale_options
     from sfm_laserscale.batch.rerun import previous_report, unchanged_reason

@@ -16,6 +16,7 @@ from typing import Any
 from sfm_laserscale.batch.rerun import previous_report, unchanged_reason
 from sfm_laserscale.batch.threads import capped_threads
 from sfm_laserscale.errors import InputError, ToolFailedError
+from sfm_laserscale.guided_spots import GuidedSpotOptions
 from sfm_laserscale.io.manifest import ManifestRow
 from sfm_laserscale.pipeline_folders import GivenInputs, resolve_scale_inputs
 from sfm_laserscale.provenance import captured_log
@@ -37,6 +38,7 @@ class ModelJob:
     method: str  # the row's, else the batch's
     seed: int
     overwrite: bool  # redo even when nothing changed
+    guided_spots: bool = True  # scale's search for missed spots where the model puts them
 
 
 @dataclass(frozen=True)
@@ -64,7 +66,8 @@ def scale_options(job: ModelJob, threads: int) -> ScaleOptions:
     the job's process, pycolmap's SIFT on ``threads`` threads."""
     return ScaleOptions(method=job.method, seed=job.seed, progress=False,
                         sift=SiftOptions(num_threads=threads),
-                        sift_workers=SiftWorkerOptions(workers=threads - 1))
+                        sift_workers=SiftWorkerOptions(workers=threads - 1),
+                        guided=GuidedSpotOptions(enabled=job.guided_spots))
 
 
 def outcome_from_report(name: str, status: str, report: dict[str, Any], wall_s: float,

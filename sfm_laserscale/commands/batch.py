@@ -43,6 +43,7 @@ class BatchOptions:
     method: str = "all"  # for rows without a method
     seed: int = 0
     progress: bool = True
+    guided_spots: bool = True  # scale's search for missed spots where the model puts them
 
 
 @dataclass(frozen=True)
@@ -78,7 +79,8 @@ def run(inputs: BatchInputs, out_dir: Path, options: BatchOptions = BatchOptions
     # a model killed mid-run left no report.json, only a staging folder that its next scale
     # run removes (io/outputs.py): it is redone
     jobs = [ModelJob(row=r, out_dir=out_dir / r.name, method=r.method or options.method,
-                     seed=options.seed, overwrite=overwrite) for r in rows]
+                     seed=options.seed, overwrite=overwrite, guided_spots=options.guided_spots)
+            for r in rows]
     jobs_n = min(jobs_n, len(jobs))  # no idle worker processes
     where = options.scheduler or (f"{jobs_n} local worker processes" if jobs_n > 1
                                   else "this process")
