@@ -2,9 +2,10 @@
 
 :func:`detect_spots` chains the stages of this package: where to look (:mod:`.beams`), the
 responses (:mod:`.response`), candidates measured, refined and scored (:mod:`.candidates`,
-:mod:`.shape`, :mod:`.refine`, :mod:`.score`), the assignment to lasers (:mod:`.assign`) and
-the reasons for lasers without a spot (:mod:`.explain`). Every candidate is returned with what
-became of it.
+:mod:`.shape`, :mod:`.refine`, :mod:`.score`), the assignment to lasers (:mod:`.assign`), the
+search where the plane through the spots found meets a missing laser's beam (:mod:`.floor`)
+and the reasons for lasers without a spot (:mod:`.explain`). Every candidate is returned with
+what became of it.
 """
 
 from __future__ import annotations

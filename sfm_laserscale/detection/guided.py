@@ -111,10 +111,11 @@ def evidence(m: Measure, colour_floor: float) -> float:
 MODEL_PLACE = "where the model puts its spot"
 
 
-def _best(measures: list[Measure], xy: tuple[float, float], radius: float, guided: GuidedOptions,
-          place: str) -> tuple[Measure | None, str]:
-    """The highest-evidence valid candidate within ``radius`` px of ``xy``, or why there is none
-    (``place`` names the point, e.g. "where the model puts its spot")."""
+def _best(measures: list[Measure], xy: tuple[float, float], guided: GuidedOptions, place: str
+          ) -> tuple[Measure | None, str]:
+    """The highest-evidence valid candidate within ``guided.radius_px`` of ``xy``, or why there
+    is none (``place`` names the point, e.g. "where the model puts its spot")."""
+    radius = guided.radius_px
     near = [m for m in measures if math.hypot(m.x - xy[0], m.y - xy[1]) <= radius]
     valid = [m for m in near if m.rejected is None]
     if valid:
@@ -144,7 +145,7 @@ def search_near(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, laser: s
     colours = list(CHANNELS) if las.color == "any" else [las.color]
     measures = [m for c in colours
                 for m in candidates_for_colour(channels, c, ungated, region, group_rgb(rig, c))]
-    best, why = _best(measures, xy, guided.radius_px, guided, place)
+    best, why = _best(measures, xy, guided, place)
     if best is None:
         return None, 0.0, why
     score = evidence(best, guided.colour_floor)
