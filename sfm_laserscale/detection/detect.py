@@ -94,11 +94,11 @@ def detect_spots(
     missing.update(missing_u)
     explain_unused(rig, valid, dist, region.band_px, options)
     shown = explain_missing(rig, measures, region, set(chosen), missing, options)
-    on_floor = _on_floor(image_rgb, camera, rig, region, {n: valid[j] for n, j in chosen.items()},
-                         missing, options)
+    taken = {name: valid[j] for name, j in chosen.items()}
+    on_floor = _on_floor(image_rgb, camera, rig, region, taken, missing, options)
     for name in on_floor:
         shown.pop(name, None)
-    taken = {name: valid[j] for name, j in chosen.items()} | on_floor
+    taken |= on_floor
     spots = tuple(
         Spot(laser=name, x=m.x, y=m.y, score=float(np.clip(m.score, 0, 1)),
              sigma_px=m.sigma_px, source="detected")
