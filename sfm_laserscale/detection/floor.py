@@ -9,7 +9,7 @@ plane). A missing laser's beam meets that plane at one range (:func:`beam_range_
 that point projected is where its spot should be (:func:`floor_predictions`), within the
 floor's relief and the rig's calibration error (measured in docs/DETECTION.md: a median
 2.3 px at 1920 × 1080). :func:`.detect.detect_spots` searches a few pixels around each such
-point with :func:`.guided.detect_near_one`, where the band's competition (scene blobs as
+point with :func:`.guided.search_near`, where the band's competition (scene blobs as
 strong as a faint spot, hundreds of pixels of band) is gone.
 """
 
