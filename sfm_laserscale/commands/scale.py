@@ -434,9 +434,9 @@ def guided_search(runs: Sequence[ImageRun], loaded: LoadedInputs, caster: MeshRa
                   ) -> tuple[list[ImageRun], MeshRaycaster] | None:
     """The runs with spots the detector missed found where the model puts them at ``scale``,
     or with the reason they were not, and a caster covering every ray they will cast (cropped
-    again from ``whole.mesh`` when needed). None when the search is off, there is no scale yet
-    or spots were given by hand."""
-    if not options.guided.enabled or not np.isfinite(scale) or loaded.manual_spots:
+    again from ``whole.mesh`` when needed). None when there is no scale yet. The caller runs it
+    only with the search on and no spots given by hand (``whole`` is kept for it then)."""
+    if not np.isfinite(scale):
         return None
     caster = covering_caster(runs, caster, whole, options, _beam_rays(runs, loaded.rig, scale))
     offsets = _offsets(runs, loaded.rig, caster, scale, options)
@@ -550,14 +550,16 @@ def _estimate_all(
             guided = guided_search(runs, loaded, caster, whole, fusion.headline.value, options)
         if guided is not None:
             searched, caster = guided
-            runs = [_estimate_guided(g, r, loaded, caster, options, timer, field, offset)
-                    for g, r in zip(searched, runs, strict=True)]
+            estimated = [_estimate_guided(g, r, loaded, caster, options, timer, field, offset)
+                         for g, r in zip(searched, runs, strict=True)]
+            if any(e.estimates is not r.estimates for e, r in zip(estimated, runs, strict=True)):
+                fusion = fuse_all(estimated, loaded.rig, options)  # new estimates: fuse again
+            runs = estimated
         whole = None
         trim_heap()
     for r in runs:
         logger.info("laser image %s: %s", r.name,
                     "estimated" if r.reason is None else f"no estimate ({r.reason})")
-    fusion = fuse_all(runs, loaded.rig, options)
     head, methods, model_checks = check_model(fusion.headline, fusion.methods,
                                               fusion.pcm_joint.joint, runs, loaded.model,
                                               field, options)
