@@ -10,7 +10,14 @@ import pytest
 
 from sfm_laserscale.detection import DetectionOptions, beam_polyline_px, detect_spots
 from sfm_laserscale.detection.beams import beam_samples, range_along_beam, scene_mask
-from sfm_laserscale.detection.joint import Option, agreeing_leads, choose, range_term
+from sfm_laserscale.detection.joint import (
+    DEPTH,
+    Option,
+    choose_jointly,
+    combination_value,
+    depth_term,
+    range_term,
+)
 from sfm_laserscale.detection.score import UNMEASURED_UNCLIPPED, AddedLight, colour_evidence
 from sfm_laserscale.model import Camera
 from sfm_laserscale.report.overlays import draw_overlay, near_misses
@@ -52,37 +59,75 @@ def test_range_along_beam_recovers_the_range_of_beam_points() -> None:
     np.testing.assert_allclose(line, beam_polyline_px(CAMERA, rig.lasers[0], 0.5, 10.0))
 
 
+def _taken(options: dict[str, list[Option]], min_score: float = 0.25) -> dict[str, int]:
+    return {n: o.index for n, o in choose_jointly(options, min_score).chosen.items()}
+
+
 def test_range_term_prefers_agreeing_ranges_but_keeps_a_floor() -> None:
-    assert range_term(3.0, []) == 1.0
-    assert range_term(3.0, [3.0, 3.1]) == pytest.approx(1.0, abs=2e-3)
-    assert 0.35 <= range_term(8.0, [3.0, 3.0]) < 0.4  # a scarp: never below the floor
+    assert range_term(3.0, math.nan) == 1.0
+    assert range_term(3.0, 3.05) == pytest.approx(1.0, abs=2e-3)
+    assert 0.35 <= range_term(8.0, 3.0) < 0.4  # a scarp: never below the floor
     # laser A's brightest candidate lies at 8 m where the three other spots are near 3 m
     options = {"A": [Option(0, 0.6, 8.0), Option(1, 0.5, 3.1)],
                "B": [Option(2, 0.8, 3.0)], "C": [Option(3, 0.7, 2.9)],
                "D": [Option(4, 0.9, 3.2), Option(0, 0.2, 8.0)]}
-    chosen = choose(options, min_score=0.25)
-    assert {n: o.index for n, o in chosen.items()} == {"A": 1, "B": 2, "C": 3, "D": 4}
+    choice = choose_jointly(options, min_score=0.25)
+    assert {n: o.index for n, o in choice.chosen.items()} == {"A": 1, "B": 2, "C": 3, "D": 4}
+    assert choice.floor_m in (3.0, 3.1, 2.9, 3.2)
     # nobody takes a candidate below min_score, and a candidate goes to one laser only
-    assert choose({"A": [Option(0, 0.2, 3.0)]}, 0.25) == {}
-    both = choose({"A": [Option(7, 0.9, 3.0)], "B": [Option(7, 0.6, 3.0)]}, 0.25)
-    assert list(both) == ["A"]
+    assert choose_jointly({"A": [Option(0, 0.2, 3.0)]}, 0.25).chosen == {}
+    assert _taken({"A": [Option(7, 0.9, 3.0)], "B": [Option(7, 0.6, 3.0)]}) == {"A": 7}
 
 
 def test_two_clutter_leads_do_not_set_the_range_of_the_others() -> None:
     # C's and D's best candidates are clutter far along their bands (8-9 m), their own spots
-    # (near 3 m) second; A and B lead at 3 m. The median of A's others (3.1, 8, 9) would be
-    # 8 m and take A below min_score; the agreeing leads are A and B.
+    # (near 3 m) second; A and B at 3 m. Judged with the others of one combination, the four
+    # spots at 3 m agree and are worth more than A and B with the clutter.
     options = {"A": [Option(0, 0.6, 3.0)], "B": [Option(1, 0.7, 3.1)],
                "C": [Option(2, 0.4, 8.0), Option(3, 0.35, 2.95)],
                "D": [Option(4, 0.3, 9.0), Option(5, 0.3, 3.05)]}
-    chosen = choose(options, min_score=0.25)
-    assert {n: o.index for n, o in chosen.items()} == {"A": 0, "B": 1, "C": 3, "D": 5}
-    assert set(agreeing_leads({n: o[0] for n, o in options.items()})) == {"A", "B"}
-    # fewer than three leads, or no two that agree: all of them
-    two = {"A": Option(0, 0.6, 3.0), "C": Option(2, 0.4, 8.0)}
-    assert agreeing_leads(two) == two
-    apart = {**two, "D": Option(4, 0.3, 1.0)}
-    assert agreeing_leads(apart) == apart
+    assert _taken(options) == {"A": 0, "B": 1, "C": 3, "D": 5}
+    value = combination_value({n: o[0] for n, o in options.items()}, 0.25)
+    assert value is None  # the clutter at 8-9 m does not reach min_score beside A and B
+
+
+def test_spots_on_a_step_of_the_relief_are_all_kept() -> None:
+    # two spots on a ledge at 1.5 m, two on the floor at 3.9 m: each disagrees with the other
+    # pair but is strong; no pair is dropped for the other to agree
+    options = {"A": [Option(0, 0.88, 1.56)], "B": [Option(1, 0.92, 3.78)],
+               "C": [Option(2, 0.87, 1.53)], "D": [Option(3, 0.95, 3.95)]}
+    choice = choose_jointly(options, 0.25)
+    assert set(choice.chosen) == {"A", "B", "C", "D"}
+    assert choice.floor_m in (3.78, 3.95)  # the floor the stronger pair lies on
+
+
+def test_particles_lit_by_the_beams_lose_to_the_spots_on_the_floor() -> None:
+    # A's and D's strongest candidates are particles lit in the water (1.1-1.7 m, laser
+    # coloured, strong); every laser also has a spot on the floor near 2.6 m (B and D's are
+    # whitened clipped cores). The floor's four agree; the particles do not.
+    options = {"A": [Option(0, 0.48, 2.61), Option(1, 0.35, 1.68, farther_m=(2.61,))],
+               "B": [Option(2, 0.03, 2.56, rescue=0.6)],
+               "C": [Option(3, 0.33, 2.66), Option(4, 0.3, 5.9)],
+               "D": [Option(5, 0.55, 1.19), Option(6, 0.07, 2.69, rescue=0.53)]}
+    choice = choose_jointly(options, 0.25)
+    assert {n: (o.index, o.rescued) for n, o in choice.chosen.items()} == {
+        "A": (0, False), "B": (2, True), "C": (3, False), "D": (6, True)}
+    assert choice.floor_m == pytest.approx(2.61, abs=0.06)
+
+
+def test_laser_light_farther_along_a_beam_is_judged_against_the_spots_taken_with_it() -> None:
+    # A's candidate at 1.2 m has laser light farther along its beam at 3 m
+    near = Option(0, 0.9, 1.2, farther_m=(3.0,))
+    assert depth_term(near, []) == DEPTH  # alone: the farther light is the beam's end
+    assert depth_term(near, [3.1, 2.9]) == DEPTH  # the other spots sit at the farther light
+    assert depth_term(near, [1.25, 1.15]) == 1.0  # they sit at its range: a speck beyond it
+    assert depth_term(Option(0, 0.9, 1.2), []) == 1.0
+    # the choice: with B and C at 3 m, A's near blob is vetoed and its far spot taken
+    options = {"A": [near, Option(1, 0.4, 3.0)], "B": [Option(2, 0.8, 3.1)],
+               "C": [Option(3, 0.7, 2.9)]}
+    choice = choose_jointly(options, 0.25)
+    assert _taken(options) == {"A": 1, "B": 2, "C": 3}
+    assert choice.depth == {"A": 1.0, "B": 1.0, "C": 1.0}
 
 
 def test_whitened_clipped_core_taken_only_at_the_other_spots_range() -> None:
@@ -92,18 +137,26 @@ def test_whitened_clipped_core_taken_only_at_the_other_spots_range() -> None:
         return {"A": [Option(0, 0.8, 3.0)], "B": [Option(1, 0.05, b_range, rescue=0.6)],
                 "C": [Option(2, 0.05, c_range, rescue=0.6)]}
 
-    chosen = choose(opts(3.2, 6.0), 0.25)
+    chosen = choose_jointly(opts(3.2, 6.0), 0.25).chosen
     assert {n: (o.index, o.rescued) for n, o in chosen.items()} == {"A": (0, False),
                                                                     "B": (1, True)}
-    assert set(choose(opts(4.0, 2.0), 0.25)) == {"A"}  # glints anywhere along their bands
+    assert _taken(opts(4.0, 2.0)) == {"A": 0}  # glints anywhere along their bands
     # no laser-coloured spot: whitened cores agreeing only with each other are not taken (in
     # laser-free 4000 × 3000 frames the bands' glints agree so in most frames)
     three = {"B": [Option(1, 0.05, 3.0, rescue=0.6)], "C": [Option(2, 0.05, 3.1, rescue=0.6)],
              "D": [Option(3, 0.05, 2.9, rescue=0.6), Option(4, 0.05, 7.0, rescue=0.9)]}
-    assert choose(three, 0.25) == {}
+    assert _taken(three) == {}
     # a rescue below min_score is never taken
-    assert set(choose({"A": [Option(0, 0.8, 3.0)], "B": [Option(1, 0.05, 3.0, rescue=0.2)]},
-                      0.25)) == {"A"}
+    assert _taken({"A": [Option(0, 0.8, 3.0)], "B": [Option(1, 0.05, 3.0, rescue=0.2)]}) == {
+        "A": 0}
+
+
+def test_many_lasers_keep_the_joint_choice_within_its_budget() -> None:
+    # eight lasers with five options each: 6^8 combinations are trimmed to MAX_COMBINATIONS,
+    # each laser keeping its best; every laser still takes its spot on the floor
+    options = {f"L{k}": [Option(10 * k + i, 0.9 - 0.1 * i, 3.0 + 0.01 * k + (2.0 if i else 0.0))
+                         for i in range(5)] for k in range(8)}
+    assert _taken(options) == {f"L{k}": 10 * k for k in range(8)}
 
 
 @pytest.mark.parametrize(

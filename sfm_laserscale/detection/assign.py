@@ -23,11 +23,14 @@ from sfm_laserscale.detection.beams import SearchRegion, distance_to_polyline, r
 from sfm_laserscale.detection.candidates import Measure
 from sfm_laserscale.detection.joint import (
     CLIPPED_COLOUR,
+    DEPTH,
     MAX_OPTIONS,
+    Choice,
+    Option,
     agrees,
-    choose,
+    choose_jointly,
+    depth_term,
     laser_options,
-    leads,
     range_term,
 )
 from sfm_laserscale.detection.options import DetectionOptions
@@ -39,8 +42,6 @@ UNCALIBRATED_REASON = "uncalibrated laser: give its spots with --spots"
 _INADMISSIBLE = 1e6
 #: colour term from which a candidate counts as laser light (for the depth order)
 LIT_COLOUR = 0.7
-#: factor of a candidate with laser light farther along its beam
-DEPTH = 0.1
 #: "farther" means beyond this fraction of the candidate's own range
 DEPTH_MARGIN = 0.05
 #: clutter term of a maximum below the clutter gate taken at the other spots' range
@@ -86,15 +87,17 @@ def _lit(m: Measure, beam: float, options: DetectionOptions) -> bool:
 
 def _mark_depth(las_name: str, i: int, region: SearchRegion, valid: list[Measure], dist: F64,
                 lit: list[int], others_m: list[float]) -> None:
-    """In place: candidates of a beam with laser light farther along it get ``depth`` DEPTH.
+    """In place: each candidate of a beam records the ranges of the laser light farther along
+    it (``farther_lit``, which the joint choice judges against the spots it takes with it,
+    :mod:`.joint`), and gets a provisional ``depth`` DEPTH when there is such light.
 
     A beam lights nothing beyond the first surface it meets: laser-coloured light nearer than
     other laser light on the same beam is a particle lit in the water, or the beam's glow.
     ``lit``: indices into ``valid`` of this beam's laser light (:func:`_beam_light`; light
-    nearer to another beam's line does not count). Nor does farther light whose range agrees
-    less than the candidate's with ``others_m`` (m: the ranges of the other beams' strongest
-    laser light): then the other beams' spots sit at the candidate's range, and the farther
-    light is a laser-coloured speck of the scene, not this beam's end.
+    nearer to another beam's line does not count). Provisionally, nor does farther light whose
+    range agrees less than the candidate's with ``others_m`` (m: the ranges of the other beams'
+    strongest laser light): then the other beams' spots sit at the candidate's range, and the
+    farther light is a laser-coloured speck of the scene, not this beam's end.
     """
     admissible = [j for j in range(len(valid)) if dist[i, j] <= region.band_px]
     if len(admissible) < 2 or not lit:
@@ -108,7 +111,8 @@ def _mark_depth(las_name: str, i: int, region: SearchRegion, valid: list[Measure
         return abs(math.log(r / ref)) if ref is not None else 0.0
 
     for k, j in enumerate(admissible):
-        far = [r for r in lit_m if r > rng[k] * (1.0 + DEPTH_MARGIN)]
+        far = [float(r) for r in lit_m if r > rng[k] * (1.0 + DEPTH_MARGIN)]
+        valid[j].farther_lit[las_name] = tuple(far)
         if any(ref is None or off(r) <= off(rng[k]) for r in far):
             valid[j].depth[las_name] = DEPTH
 
@@ -162,6 +166,32 @@ def _laser_costs(
     return cost, dist, unseen
 
 
+def _depth_free(scores: F64, valid: list[Measure], name: str) -> F64:
+    """A laser's candidate scores (N,) without their depth term (the joint choice decides it
+    against the spots chosen with them)."""
+    depth = np.array([m.depth.get(name, 1.0) for m in valid], dtype=np.float64)
+    return np.asarray(scores / np.maximum(depth, 1e-12), dtype=np.float64)
+
+
+def _farther(valid: list[Measure], name: str) -> dict[int, tuple[float, ...]]:
+    """Candidate index -> ranges (m) of laser light farther along a laser's beam."""
+    return {j: m.farther_lit[name] for j, m in enumerate(valid) if m.farther_lit.get(name)}
+
+
+def _mark_choice(opts: dict[str, list[Option]], choice: Choice, valid: list[Measure]) -> None:
+    """In place: every option's range and depth terms as the joint choice judges them (against
+    its floor range and the spots it took; no range term when it took none)."""
+    plain = {n: o for n, o in choice.chosen.items() if not o.rescued}
+    for name, ranked in opts.items():
+        others = [o.range_m for n, o in plain.items() if n != name]
+        for o in ranked:
+            m = valid[o.index]
+            m.range_fit[name] = range_term(o.range_m, choice.floor_m)
+            taken = choice.chosen.get(name)
+            m.depth[name] = (choice.depth[name] if taken is not None and taken.index == o.index
+                             else depth_term(o, others))
+
+
 def assign_calibrated(
     rig: Rig, region: SearchRegion, valid: list[Measure], options: DetectionOptions
 ) -> tuple[dict[str, int], dict[str, str], F64]:
@@ -169,14 +199,12 @@ def assign_calibrated(
     distances."""
     cost, dist, missing = _laser_costs(rig, region, valid, options)
     scores = np.where(cost < _INADMISSIBLE, np.exp(-cost), 0.0)
-    opts = {las.name: laser_options(las.name, scores[i], region, valid, MAX_OPTIONS)
+    opts = {las.name: laser_options(las.name, _depth_free(scores[i], valid, las.name), region,
+                                    valid, _farther(valid, las.name), MAX_OPTIONS)
             for i, las in enumerate(rig.lasers) if las.calibrated and las.name not in missing}
-    picked = choose(opts, options.min_score)
-    lead = leads(opts, options.min_score)
-    for name, ranked in opts.items():  # every option's range term, as choose() used it
-        others = [o.range_m for n, o in lead.items() if n != name]
-        for o in ranked:
-            valid[o.index].range_fit[name] = range_term(o.range_m, others)
+    choice = choose_jointly(opts, options.min_score)
+    _mark_choice(opts, choice, valid)
+    picked = choice.chosen
     chosen: dict[str, int] = {}
     for name, o in picked.items():
         li = rig.names.index(name)

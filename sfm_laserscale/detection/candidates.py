@@ -88,6 +88,8 @@ class Measure:
     reason: str = ""
     evidence: dict[str, float] = field(default_factory=dict)  # final, for the chosen laser
     depth: dict[str, float] = field(default_factory=dict)  # laser -> depth term (assign.py)
+    # laser -> ranges (m) of laser light farther along its beam (assign.py)
+    farther_lit: dict[str, tuple[float, ...]] = field(default_factory=dict)
     range_fit: dict[str, float] = field(default_factory=dict)  # laser -> range term (joint.py)
 
     @property

@@ -1,32 +1,45 @@
-"""One spot per calibrated laser, chosen with the agreement of the spots' ranges.
+"""One spot per calibrated laser, chosen jointly: the spots a scaler's beams make on one floor.
 
 The beams of a scaler hit one seafloor a few decimetres apart, so their ranges along the beams
 agree to within what the floor's slope and relief allow; a candidate of one beam's band that is
-something else (clutter, a glint, a lit particle) sits at a range anywhere from the beam's near
-end to its far end. Each candidate's position along its beam gives its range
-(:func:`~sfm_laserscale.detection.beams.range_along_beam`). Each laser's MAX_OPTIONS best
-candidates get the range term ``RANGE_FLOOR + (1 − RANGE_FLOOR)·exp(-½ (ln(r / r_ref) /
-RANGE_SIGMA_LN)²)``, r_ref the median range of the other lasers' best candidates (those
-reaching ``min_score`` on their own; of three or more, only the largest group that agrees,
-:func:`agreeing_leads`): the floor keeps a strong spot on a step of the relief (a
-scarp, a coral head) that disagrees with the others. A laser takes its best candidate by score ×
-range term when that reaches ``min_score``.
+something else (clutter, a glint, a particle lit in the water) sits at a range anywhere from the
+beam's near end to its far end. Each candidate's position along its beam gives its range
+(:func:`~sfm_laserscale.detection.beams.range_along_beam`).
 
-A small clipped core's colour is often not readable at all: demosaicing, 4:2:0 chroma and the
-white balance whiten its rim, so it reads like a glint (``Measure.whitened``: half-maximum radius
-at most ``candidates.WHITENED_MAX_RADIUS``; a larger glint shows its own colour). Such a
-candidate keeps its colour term against it unless its range agrees within RESCUE_RANGE_LN with
-the lasers chosen on their own evidence: then its colour term is CLIPPED_COLOUR instead
-(``Option.rescue``) and it is taken when that reaches ``min_score``. A glint sits anywhere along
-a band; a laser's spot sits at the range of the other spots. (Whitened cores agreeing only with
-each other are not taken: at 4000 × 3000 the bands hold enough glints that three or four of
-them agree within 15 % in most laser-free frames.)
+Each laser's MAX_OPTIONS best candidates (by their evidence without range and depth) are its
+options. :func:`choose_jointly` weighs every combination of options, one or none per laser and
+each candidate to one laser (:func:`combination_value`):
+
+- the combination's floor range r_ref is the range, of its options' own, that maximises its
+  total; every option is worth its score × range term
+  ``RANGE_FLOOR + (1 − RANGE_FLOOR)·exp(-½ (ln(r / r_ref) / RANGE_SIGMA_LN)²)`` and must reach
+  ``min_score``. The floor keeps a strong spot on a step of the relief (a scarp, a coral head)
+  that disagrees with the others. One reference shared by all, not the median of the others:
+  two spots on a step do not pull the two on the floor down with them;
+- *depth*: a beam lights nothing beyond the first surface it meets, so laser-coloured light
+  farther along an option's beam (``Option.farther_m``) makes it a particle lit in the water or
+  the beam's glow (× DEPTH), unless the option's range agrees better than that light's with the
+  median range of the combination's other options: then the other spots sit at the option's
+  range and the farther light is a laser-coloured speck of the scene;
+- a small clipped core's colour is often not readable at all: demosaicing, 4:2:0 chroma and
+  the white balance whiten its rim, so it reads like a glint (``Measure.whitened``: half-maximum
+  radius at most ``candidates.WHITENED_MAX_RADIUS``; a larger glint shows its own colour). It
+  may be taken with CLIPPED_COLOUR for its colour term (``Option.rescue``) where its range
+  agrees within RESCUE_RANGE_LN with r_ref of options taken on their own evidence: a glint sits
+  anywhere along a band, a laser's spot at the range of the other spots. Whitened cores that
+  agree only with each other are not taken: at 4000 × 3000 the bands hold enough glints that
+  three or four of them agree within 15 % in most laser-free frames.
+
+The combination of the highest total wins (ties: more spots). Particles lit by the beams are
+laser-coloured and strong, but their ranges agree neither with each other nor with the floor;
+the spots on the floor agree with each other.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,46 +54,79 @@ MAX_OPTIONS = 5
 RANGE_SIGMA_LN = 0.4
 #: the range term never falls below this (the seafloor may have steps: scarps, coral heads)
 RANGE_FLOOR = 0.35
-#: leads whose ranges agree within this (natural log) form the range reference
-LEAD_AGREEMENT_LN = 0.25
 #: candidates scoring below this are not considered at all
 MIN_CONSIDERED = 0.02
 #: colour term of a clipped core whose colour reads whitened, when its range agrees
 CLIPPED_COLOUR = 1.0
-#: … agrees: |ln(range / median range of the lasers chosen on their own)| at most this
+#: … agrees: |ln(range / the floor range of the options taken on their own)| at most this
 RESCUE_RANGE_LN = 0.15
+#: factor of an option with laser light farther along its beam
+DEPTH = 0.1
+#: the joint choice weighs at most this many combinations (more: each laser's weakest
+#: alternatives are dropped first)
+MAX_COMBINATIONS = 20000
 
 
 @dataclass(frozen=True)
 class Option:
-    """A candidate for a laser: its index in ``valid``, its score, its range (m) and its score
-    with CLIPPED_COLOUR for colour (``rescue``, 0 unless a clipped core's colour read against
-    it); ``rescued`` when chosen that way."""
+    """A candidate for a laser: its index in ``valid``, its score (every evidence term but
+    range and depth), its range (m), the ranges (m) of laser light farther along the laser's
+    beam (``farther_m``), its score with CLIPPED_COLOUR for colour (``rescue``, 0 unless a
+    clipped core's colour read against it); ``rescued`` when taken that way."""
 
     index: int
     score: float
     range_m: float
     rescue: float = 0.0
     rescued: bool = False
+    farther_m: tuple[float, ...] = ()
 
 
-def range_term(range_m: float, others_m: list[float]) -> float:
-    """Agreement of a spot's range with the median range of the other chosen spots."""
-    if not others_m or not math.isfinite(range_m):
+@dataclass(frozen=True)
+class Choice:
+    """The joint choice: laser -> option taken, the floor range r_ref (m; nan when nothing
+    was taken) and each option's depth term in it (laser -> depth)."""
+
+    chosen: dict[str, Option]
+    floor_m: float = math.nan
+    depth: dict[str, float] = field(default_factory=dict)
+
+
+def range_term(range_m: float, ref_m: float) -> float:
+    """Agreement of a spot's range with the floor range ``ref_m`` (1 when either is not
+    finite)."""
+    if not (math.isfinite(range_m) and math.isfinite(ref_m)):
         return 1.0
-    z = math.log(range_m / float(np.median(others_m))) / RANGE_SIGMA_LN
+    z = math.log(range_m / ref_m) / RANGE_SIGMA_LN
     return RANGE_FLOOR + (1.0 - RANGE_FLOOR) * math.exp(-0.5 * z * z)
 
 
+def depth_term(o: Option, others_m: list[float]) -> float:
+    """DEPTH when laser light lies farther along the option's beam and the other options'
+    median range (``others_m``) does not agree better with the option than with that light."""
+    if not o.farther_m:
+        return 1.0
+    if not others_m:
+        return DEPTH
+    ref = float(np.median(others_m))
+
+    def off(r: float) -> float:
+        return abs(math.log(r / ref))
+
+    return DEPTH if any(off(r) <= off(o.range_m) for r in o.farther_m) else 1.0
+
+
 def laser_options(name: str, scores: F64, region: SearchRegion, valid: list[Measure],
-                  per_laser: int) -> list[Option]:
-    """The best ``per_laser`` candidates of one laser (scores (N,), 0 = inadmissible)."""
+                  farther: dict[int, tuple[float, ...]], per_laser: int) -> list[Option]:
+    """The best ``per_laser`` candidates of one laser (scores (N,), 0 = inadmissible;
+    ``farther``: candidate index -> ranges of laser light farther along this beam)."""
     order = [int(j) for j in np.argsort(-scores) if scores[j] >= MIN_CONSIDERED][:per_laser]
     if not order:
         return []
     xy = np.array([[valid[j].x, valid[j].y] for j in order])
     ranges = range_along_beam(xy, region.polylines[name], region.ranges[name])
-    return [Option(j, float(scores[j]), float(r), _rescue(valid[j], float(scores[j])))
+    return [Option(j, float(scores[j]), float(r), _rescue(valid[j], float(scores[j])),
+                   farther_m=farther.get(j, ()))
             for j, r in zip(order, ranges, strict=True)]
 
 
@@ -91,71 +137,72 @@ def _rescue(m: Measure, score: float) -> float:
     return score / m.colour.term * CLIPPED_COLOUR
 
 
-def choose(options: dict[str, list[Option]], min_score: float) -> dict[str, Option]:
-    """Laser -> chosen option: each laser's best by score × range term against the median
-    range of the other lasers' best-scoring candidates (those reaching ``min_score``), if it
-    reaches ``min_score``; a candidate wanted by two lasers goes to the higher value."""
-    lead = leads(options, min_score)
-    picked: dict[str, tuple[Option, float]] = {}
-    for name, opts in options.items():
-        others = [o.range_m for n, o in lead.items() if n != name]
-        ranked = [(o, o.score * range_term(o.range_m, others)) for o in opts]
-        best = max(ranked, key=lambda ov: ov[1], default=None)
-        if best is not None and best[1] >= min_score:
-            picked[name] = best
-    chosen: dict[str, Option] = {}
-    for name, (o, _) in sorted(picked.items(), key=lambda kv: -kv[1][1]):
-        if all(c.index != o.index for c in chosen.values()):
-            chosen[name] = o
-    return {**chosen, **rescued(options, chosen, min_score)}
+def _depths(combo: dict[str, Option]) -> dict[str, float]:
+    """Each option's depth term against the other options of its combination taken on their
+    own evidence."""
+    return {n: depth_term(o, [p.range_m for m, p in combo.items() if m != n and not p.rescued])
+            for n, o in combo.items()}
 
 
-def leads(options: dict[str, list[Option]], min_score: float) -> dict[str, Option]:
-    """The range reference's candidates: each laser's best reaching ``min_score`` on its own,
-    of those the ones that agree (:func:`agreeing_leads`)."""
-    return agreeing_leads({n: opts[0] for n, opts in options.items()
-                           if opts and opts[0].score >= min_score})
-
-
-def agreeing_leads(lead: dict[str, Option]) -> dict[str, Option]:
-    """The leading candidates whose ranges agree: with three or more leads, the largest group
-    within LEAD_AGREEMENT_LN of one of them (ties: the higher total score), when it holds at
-    least two. One wrong lead moves a median of two or three; two clutter leads (the lasers'
-    own spots whitened, below ``min_score`` on their own) would pull every true spot's range
-    term to its floor and leave the frame without a spot."""
-    finite = {n: o for n, o in lead.items() if math.isfinite(o.range_m)}
-    if len(finite) < 3:
-        return lead
-    best: list[str] = []
-    best_key = (0, 0.0)
-    for o in finite.values():
-        members = [m for m, p in finite.items()
-                   if abs(math.log(p.range_m / o.range_m)) <= LEAD_AGREEMENT_LN]
-        key = (len(members), sum(finite[m].score for m in members))
-        if key > best_key:
-            best, best_key = members, key
-    return {n: lead[n] for n in best} if len(best) >= 2 else lead
-
-
-def rescued(options: dict[str, list[Option]], chosen: dict[str, Option], min_score: float
-            ) -> dict[str, Option]:
-    """Lasers without a spot that take a clipped core of whitened colour at the range of the
-    spots ``chosen`` on their own evidence (see the module docstring)."""
-    if not chosen:
-        return {}
-    ref = float(np.median([o.range_m for o in chosen.values()]))
-    taken = {o.index for o in chosen.values()}
-    out: dict[str, Option] = {}
-    for name, opts in options.items():
-        if name in chosen:
+def combination_value(combo: dict[str, Option], min_score: float) -> tuple[float, Choice] | None:
+    """(total value, choice) of one combination (laser -> option), or None when an option
+    fails in it (module docstring): r_ref is, of the ranges of the options taken on their own
+    evidence, the one that maximises the total."""
+    plain = {n: o for n, o in combo.items() if not o.rescued}
+    rescues = [o for o in combo.values() if o.rescued]
+    if not plain:
+        return None
+    depth = _depths(combo)
+    rescue_values = [o.rescue * depth[n] for n, o in combo.items() if o.rescued]
+    if rescue_values and min(rescue_values) < min_score:
+        return None
+    best: tuple[float, Choice] | None = None
+    for ref in {o.range_m for o in plain.values()}:
+        values = [o.score * depth[n] * range_term(o.range_m, ref) for n, o in plain.items()]
+        if min(values) < min_score or not all(agrees(o.range_m, ref) for o in rescues):
             continue
-        fits = [o for o in opts if o.rescue >= min_score and o.index not in taken
-                and agrees(o.range_m, ref)]
-        if fits:
-            best = max(fits, key=lambda o: o.rescue)
-            out[name] = replace(best, rescued=True)
-            taken.add(best.index)
-    return out
+        total = sum(values) + sum(rescue_values)
+        if best is None or total > best[0]:
+            best = (total, Choice(combo, ref, depth))
+    return best
+
+
+def _alternatives(opts: list[Option], min_score: float) -> list[Option | None]:
+    """What one laser may take, best first after nothing: an option reaching ``min_score`` on
+    its own, or a whitened core's option with its rescue score (``rescued``)."""
+    alts: list[Option | None] = [None]
+    for o in opts:
+        if o.score >= min_score:
+            alts.append(o)
+        if o.rescue >= min_score:
+            alts.append(replace(o, rescued=True))
+    return alts
+
+
+def _trimmed(alts: list[list[Option | None]]) -> list[list[Option | None]]:
+    """The alternatives with each laser's weakest dropped, longest list first, until their
+    combinations number at most MAX_COMBINATIONS (rigs of five lasers or more)."""
+    alts = [list(a) for a in alts]
+    while math.prod(len(a) for a in alts) > MAX_COMBINATIONS:
+        max(alts, key=len).pop()
+    return alts
+
+
+def choose_jointly(options: dict[str, list[Option]], min_score: float) -> Choice:
+    """The combination (one option or none per laser, each candidate to one laser) of the
+    highest total value (ties: more spots); an empty :class:`Choice` when none scores."""
+    names = [n for n, opts in options.items() if opts]
+    alts = _trimmed([_alternatives(options[n], min_score) for n in names])
+    best = Choice({})
+    best_key = (0.0, 0)
+    for pick in itertools.product(*alts):
+        combo = {n: o for n, o in zip(names, pick, strict=True) if o is not None}
+        if not combo or len({o.index for o in combo.values()}) < len(combo):
+            continue
+        valued = combination_value(combo, min_score)
+        if valued is not None and (valued[0], len(combo)) > best_key:
+            best, best_key = valued[1], (valued[0], len(combo))
+    return best
 
 
 def agrees(range_m: float, ref_m: float) -> bool:
