@@ -131,3 +131,32 @@ def test_a_spot_the_band_hides_is_found_where_the_other_spots_floor_puts_it() ->
     empty = detect_spots(_image(truth, None, np.random.default_rng(5)), CAMERA, rig)
     assert "L4" not in {s.laser for s in empty.spots}
     assert PLACE in empty.missing["L4"]
+
+
+def test_the_floor_is_searched_again_with_the_spots_the_second_look_took() -> None:
+    """L3 below the clutter gate (taken on the second look, at the other spots' range), L4 a
+    20th of the bright spots (found only on the floor). With ``floor_min_spots`` 3 the floor of
+    L1 and L2 is not searched; the one through L1, L2 and L3 is, after the second look."""
+    truth = _spots((0.25, -0.2, 1.0), 2.8)
+    rng = np.random.default_rng(5)
+    img = np.empty((CAMERA.height, CAMERA.width, 3), np.float32)
+    img[:] = WATER
+    img += rng.normal(0.0, 0.004, img.shape).astype(np.float32)
+    for _ in range(400):
+        x, y = rng.uniform(0, CAMERA.width), rng.uniform(0, CAMERA.height)
+        if min(math.dist((x, y), xy) for xy in truth.values()) > 30:
+            paint_spot(img, (x, y), "green", sigma_px=1.5, peak=float(rng.uniform(0.1, 0.3)))
+    for name, xy in truth.items():
+        paint_spot(img, xy, "green", sigma_px=1.5, peak={"L3": 0.3, "L4": 0.08}.get(name, 1.6))
+    image = to_uint8(img, 2.2)
+    rig = _rig()
+    res = detect_spots(image, CAMERA, rig, DetectionOptions(floor_min_spots=3))
+    got = {s.laser: s for s in res.spots}
+    assert set(got) == {"L1", "L2", "L3", "L4"}, res.missing
+    reasons = {c.laser: c.reason for c in res.candidates if c.laser}
+    assert "below the clutter gate" in reasons["L3"] and PLACE in reasons["L4"]
+    assert math.dist((got["L4"].x, got["L4"].y), truth["L4"]) < 0.3
+    # without the second look neither is found, and L4's floor (two spots) is not searched
+    off = detect_spots(image, CAMERA, rig,
+                       DetectionOptions(floor_min_spots=3, second_look_clutter_ratio=1.5))
+    assert {s.laser for s in off.spots} == {"L1", "L2"} and PLACE not in off.missing["L4"]

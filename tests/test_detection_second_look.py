@@ -85,3 +85,22 @@ def test_second_look_needs_the_other_spots_range_and_the_laser_colour(
     # measured for the second look, and not taken
     assert "taken only at the range of the other lasers' spots" in res.missing["L2"], (
         res.missing["L2"])
+
+
+@pytest.mark.parametrize(("range_m", "taken"), [(2.6, True), (5.0, False)])
+def test_a_candidate_weaker_than_the_clutter_term_wants_is_taken_at_the_other_spots_range(
+        range_m: float, taken: bool) -> None:
+    """Above the clutter gate, but its clutter term (clutter_half 60 levels: L2's 32 give 0.22)
+    keeps it below min_score: at the other spot's range the second look waives that term, as
+    it does for a maximum below the gate; elsewhere along its band it stays out."""
+    rig = _rig()
+    res = detect_spots(_image(range_m), CAMERA, rig, DetectionOptions(clutter_half=60.0))
+    got = {s.laser: s for s in res.spots}
+    assert set(got) == ({"L1", "L2"} if taken else {"L1"}), res.missing
+    if taken:
+        assert math.dist((got["L2"].x, got["L2"].y), _xy(rig, "L2", range_m)) < 0.3
+        l2 = [c for c in res.candidates if c.laser == "L2"][0]
+        assert "its clutter term waived" in l2.reason
+        assert dict(l2.evidence)["clutter"] == 1.0 and got["L2"].score >= 0.25
+    else:
+        assert "L2" in res.missing

@@ -229,14 +229,16 @@ def assign_calibrated(
 def second_look(rig: Rig, region: SearchRegion, measures: list[Measure], valid: list[Measure],
                 chosen: dict[str, int], options: DetectionOptions) -> dict[str, int]:
     """Calibrated lasers still without a spot take a maximum held back by the clutter gate
-    (``Measure.second_look``) whose light has the laser's colour (colour term at least
-    LIT_COLOUR) and whose range agrees with the median range of the ``chosen`` spots
-    (:func:`~sfm_laserscale.detection.joint.agrees`); its clutter term is then
-    CLUTTER_AT_RANGE and it is taken when that scores ``min_score``. A maximum of the scene's
+    (``Measure.second_look``), or a candidate left unassigned, whose light has the laser's
+    colour (colour term at least LIT_COLOUR) and whose range agrees with the median range of
+    the ``chosen`` spots (:func:`~sfm_laserscale.detection.joint.agrees`); its clutter term is
+    then CLUTTER_AT_RANGE and it is taken when that scores ``min_score``. A blob of the scene's
     texture sits anywhere along a band; a laser's spot sits at the range of the other spots.
-    Taken measures are appended to ``valid``; returns laser name -> index into ``valid``."""
-    pool = [m for m in measures if m.second_look]
+    Taken maxima are appended to ``valid``; returns laser name -> index into ``valid``."""
+    free = set(range(len(valid))) - set(chosen.values())
+    pool = [m for m in measures if m.second_look] + [valid[j] for j in sorted(free)]
     ref = _chosen_range(region, valid, chosen)
+    index = {id(m): j for j, m in enumerate(valid)}
     taken: dict[str, int] = {}
     for las in rig.lasers:
         if not pool or ref is None or las.name in chosen or not las.calibrated:
@@ -246,8 +248,10 @@ def second_look(rig: Rig, region: SearchRegion, measures: list[Measure], valid: 
         if fits:
             (value, beam), m = max(fits, key=lambda f: f[0][0])
             _take_second_look(m, las.name, value, beam)
-            valid.append(m)
-            taken[las.name] = len(valid) - 1
+            if id(m) not in index:
+                valid.append(m)
+                index[id(m)] = len(valid) - 1
+            taken[las.name] = index[id(m)]
             pool.remove(m)
     return taken
 
@@ -276,17 +280,21 @@ def _second_look_value(m: Measure, name: str, region: SearchRegion, ref_m: float
         return 0.0, 0.0
     terms = {**m.terms, "clutter": CLUTTER_AT_RANGE}
     beam = float(beam_term(np.array([dist]), region.band_px)[0])
-    value = float(np.prod(list(terms.values()))) * m.colour.term * beam
+    value = (float(np.prod(list(terms.values()))) * m.colour.term * beam
+             * m.depth.get(name, 1.0))
     return (value, beam) if value >= options.min_score else (0.0, 0.0)
 
 
 def _take_second_look(m: Measure, name: str, value: float, beam: float) -> None:
     """In place: a second-look maximum becomes laser ``name``'s spot (``beam``: its term)."""
+    gated = m.rejected is not None
     m.terms["clutter"] = CLUTTER_AT_RANGE
+    m.range_fit[name] = 1.0
     m.evidence = evidence(m, beam, name)
     m.rejected, m.laser, m.score = None, name, value
-    m.reason = (f"assigned to {name}: below the clutter gate ({m.clutter_ratio:.2f} × clutter "
-                "level), laser-coloured, at the range of the other lasers' spots")
+    strength = ("below the clutter gate" if gated else "its clutter term waived")
+    m.reason = (f"assigned to {name}: {strength} ({m.clutter_ratio:.2f} × clutter level), "
+                "laser-coloured, at the range of the other lasers' spots")
 
 
 def assign_uncalibrated(

@@ -57,22 +57,48 @@ def _candidate(m: Measure) -> Candidate:
 
 
 def _on_floor(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region: SearchRegion,
-              taken: dict[str, Measure], missing: dict[str, str], options: DetectionOptions
-              ) -> dict[str, Measure]:
+              taken: dict[str, Measure], options: DetectionOptions
+              ) -> tuple[dict[str, Measure], dict[str, str]]:
     """Spots found where the floor through the ``taken`` ones puts them (:mod:`.floor`),
-    marked assigned; ``missing`` loses their lasers and gains the search's reason for others."""
-    found = {}
+    marked assigned, and for the other lasers searched, what the search saw."""
+    found, why = {}, {}
     spots_px = {name: (m.x, m.y) for name, m in taken.items()}
     for name, find in floor_search(image_rgb, camera, rig, region, spots_px, options).items():
         if find.measure is None:
-            missing[name] = f"{missing.get(name, 'no spot')}; {PLACE}: {find.why}"
+            why[name] = find.why
             continue
         m = find.measure
         m.score, m.laser = find.score, name
         m.reason = f"assigned to {name}: {PLACE}"
         found[name] = m
-        missing.pop(name, None)
-    return found
+    return found, why
+
+
+def _floor_then_second_look(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
+                            region: SearchRegion, measures: list[Measure], valid: list[Measure],
+                            chosen: dict[str, int], options: DetectionOptions
+                            ) -> tuple[dict[str, Measure], dict[str, str]]:
+    """In place (``chosen``, ``valid``): lasers without a spot searched where the floor through
+    the chosen spots puts them (:mod:`.floor`, a few pixels), then along their bands at the
+    chosen spots' range (:func:`.assign.second_look`), then on the floor again when that took
+    a spot. Returns the floor's spots and, for the lasers it searched in vain, what it saw."""
+    on_floor: dict[str, Measure] = {}
+    why: dict[str, str] = {}
+    for round_ in range(2):
+        taken = {name: valid[j] for name, j in chosen.items()}
+        found, why_now = _on_floor(image_rgb, camera, rig, region, taken, options)
+        why.update(why_now)
+        for name, m in found.items():  # appended to valid: dist keeps the first columns
+            valid.append(m)
+            chosen[name] = len(valid) - 1
+        on_floor |= found
+        if round_ == 1:
+            break
+        looked = second_look(rig, region, measures, valid, chosen, options)
+        chosen.update(looked)
+        if not looked:
+            break
+    return on_floor, why
 
 
 def detect_spots(
@@ -86,19 +112,19 @@ def detect_spots(
     trim_heap()  # the detection planes (~16 bytes per pixel) go back to the OS
     valid = [m for m in measures if m.rejected is None]
     chosen, missing, dist = assign_calibrated(rig, region, valid, options)
-    for name, k in second_look(rig, region, measures, valid, chosen, options).items():
-        chosen[name] = k  # appended to valid: dist keeps the first choice's columns
+    on_floor, floor_why = _floor_then_second_look(image_rgb, camera, rig, region, measures,
+                                                  valid, chosen, options)
+    for name in chosen:
         missing.pop(name, None)
     chosen_u, missing_u = assign_uncalibrated(rig, valid, set(chosen.values()), options)
     chosen.update(chosen_u)
     missing.update(missing_u)
     explain_unused(rig, valid, dist, region.band_px, options)
     shown = explain_missing(rig, measures, region, set(chosen), missing, options)
+    for name, why in floor_why.items():
+        if name not in chosen:
+            missing[name] = f"{missing.get(name, 'no spot')}; {PLACE}: {why}"
     taken = {name: valid[j] for name, j in chosen.items()}
-    on_floor = _on_floor(image_rgb, camera, rig, region, taken, missing, options)
-    for name in on_floor:
-        shown.pop(name, None)
-    taken |= on_floor
     spots = tuple(
         Spot(laser=name, x=m.x, y=m.y, score=float(np.clip(m.score, 0, 1)),
              sigma_px=m.sigma_px, source="detected")
