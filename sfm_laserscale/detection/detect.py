@@ -74,6 +74,19 @@ def _on_floor(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region: Se
     return found, why
 
 
+def _floor_round(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region: SearchRegion,
+                 valid: list[Measure], chosen: dict[str, int], options: DetectionOptions
+                 ) -> tuple[dict[str, Measure], dict[str, str]]:
+    """In place (``chosen``, ``valid``): one floor search (:func:`_on_floor`) through the
+    chosen spots; its spots are appended to ``valid`` (``dist`` keeps the first columns)."""
+    found, why = _on_floor(image_rgb, camera, rig, region,
+                           {name: valid[j] for name, j in chosen.items()}, options)
+    for name, m in found.items():
+        valid.append(m)
+        chosen[name] = len(valid) - 1
+    return found, why
+
+
 def _floor_then_second_look(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
                             region: SearchRegion, measures: list[Measure], valid: list[Measure],
                             chosen: dict[str, int], options: DetectionOptions
@@ -82,22 +95,13 @@ def _floor_then_second_look(image_rgb: NDArray[np.uint8], camera: Camera, rig: R
     the chosen spots puts them (:mod:`.floor`, a few pixels), then along their bands at the
     chosen spots' range (:func:`.assign.second_look`), then on the floor again when that took
     a spot. Returns the floor's spots and, for the lasers it searched in vain, what it saw."""
-    on_floor: dict[str, Measure] = {}
-    why: dict[str, str] = {}
-    for round_ in range(2):
-        taken = {name: valid[j] for name, j in chosen.items()}
-        found, why_now = _on_floor(image_rgb, camera, rig, region, taken, options)
-        why.update(why_now)
-        for name, m in found.items():  # appended to valid: dist keeps the first columns
-            valid.append(m)
-            chosen[name] = len(valid) - 1
-        on_floor |= found
-        if round_ == 1:
-            break
-        looked = second_look(rig, region, measures, valid, chosen, options)
-        chosen.update(looked)
-        if not looked:
-            break
+    on_floor, why = _floor_round(image_rgb, camera, rig, region, valid, chosen, options)
+    looked = second_look(rig, region, measures, valid, chosen, options)
+    chosen.update(looked)
+    if looked:
+        more, why_more = _floor_round(image_rgb, camera, rig, region, valid, chosen, options)
+        on_floor |= more
+        why |= why_more
     return on_floor, why
 
 
