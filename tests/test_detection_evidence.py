@@ -115,6 +115,22 @@ def test_particles_lit_by_the_beams_lose_to_the_spots_on_the_floor() -> None:
     assert choice.floor_m == pytest.approx(2.61, abs=0.06)
 
 
+def test_a_lone_option_is_judged_against_the_other_lasers_leads() -> None:
+    # a laser-free frame: strong blobs at unrelated ranges (2.8, 0.5, 0.7 m) and a whitened
+    # glint. No two agree within 25 %, so each is judged against the other lasers' ranges, and
+    # leaving a laser out of the combination does not silence its lead: nothing is taken
+    options = {"A": [Option(0, 0.52, 2.79)], "B": [Option(1, 0.53, 0.5)],
+               "C": [Option(2, 0.04, 0.79, rescue=0.75)], "D": [Option(3, 0.33, 0.72)]}
+    assert _taken(options) == {}
+    # the same blob at A with B and D agreeing with it is a spot; C's glint, at 0.79 m, is not
+    options |= {"B": [Option(1, 0.53, 2.7)], "D": [Option(3, 0.33, 2.9)]}
+    assert _taken(options) == {"A": 0, "B": 1, "D": 3}
+    options |= {"C": [Option(2, 0.04, 2.75, rescue=0.75)]}
+    assert _taken(options) == {"A": 0, "B": 1, "C": 2, "D": 3}
+    # a lone spot with no other lead anywhere keeps its full score
+    assert _taken({"A": [Option(0, 0.3, 2.0)], "B": []}) == {"A": 0}
+
+
 def test_laser_light_farther_along_a_beam_is_judged_against_the_spots_taken_with_it() -> None:
     # A's candidate at 1.2 m has laser light farther along its beam at 3 m
     near = Option(0, 0.9, 1.2, farther_m=(3.0,))

@@ -186,10 +186,12 @@ def _mark_choice(opts: dict[str, list[Option]], choice: Choice, valid: list[Meas
         others = [o.range_m for n, o in plain.items() if n != name]
         for o in ranked:
             m = valid[o.index]
-            m.range_fit[name] = range_term(o.range_m, choice.floor_m)
             taken = choice.chosen.get(name)
-            m.depth[name] = (choice.depth[name] if taken is not None and taken.index == o.index
-                             else depth_term(o, others))
+            mine = taken is not None and taken.index == o.index
+            m.range_fit[name] = range_term(
+                o.range_m, choice.range_ref_m.get(name, choice.floor_m) if mine
+                else choice.floor_m)
+            m.depth[name] = choice.depth[name] if mine else depth_term(o, others)
 
 
 def assign_calibrated(

@@ -54,6 +54,8 @@ MAX_OPTIONS = 5
 RANGE_SIGMA_LN = 0.4
 #: the range term never falls below this (the seafloor may have steps: scarps, coral heads)
 RANGE_FLOOR = 0.35
+#: options whose ranges agree within this (natural log) back each other
+LEAD_AGREEMENT_LN = 0.25
 #: candidates scoring below this are not considered at all
 MIN_CONSIDERED = 0.02
 #: colour term of a clipped core whose colour reads whitened, when its range agrees
@@ -90,6 +92,7 @@ class Choice:
     chosen: dict[str, Option]
     floor_m: float = math.nan
     depth: dict[str, float] = field(default_factory=dict)
+    range_ref_m: dict[str, float] = field(default_factory=dict)  # laser -> its r_ref
 
 
 def range_term(range_m: float, ref_m: float) -> float:
@@ -144,10 +147,42 @@ def _depths(combo: dict[str, Option]) -> dict[str, float]:
             for n, o in combo.items()}
 
 
-def combination_value(combo: dict[str, Option], min_score: float) -> tuple[float, Choice] | None:
+def lead_ranges(options: dict[str, list[Option]], min_score: float) -> dict[str, float]:
+    """Laser -> range (m) of its lead: its best option, when that reaches ``min_score`` on its
+    own."""
+    return {n: opts[0].range_m for n, opts in options.items()
+            if opts and opts[0].score >= min_score and math.isfinite(opts[0].range_m)}
+
+
+def _lone_reference(name: str, plain: dict[str, Option], lead_m: dict[str, float]) -> float:
+    """The range (m) a lone option of laser ``name`` is judged against: the median over the
+    other lasers of their option in the combination, or else their lead (nan: none).
+
+    A laser-free frame's bands hold strong blobs at unrelated ranges; each of them, taken alone,
+    disagrees with the others, and leaving another laser out of the combination does not
+    silence its lead."""
+    others = (set(lead_m) | set(plain)) - {name}
+    ranges = [plain[n].range_m if n in plain else lead_m[n] for n in sorted(others)]
+    return float(np.median(ranges)) if ranges else math.nan
+
+
+def _lone(plain: dict[str, Option]) -> set[str]:
+    """The options taken on their own evidence whose range no other such option of their
+    combination agrees with (within LEAD_AGREEMENT_LN). Whitened cores do not count: one or
+    two glints agree with a blob by chance in many laser-free frames."""
+    return {n for n, o in plain.items()
+            if not any(abs(math.log(p.range_m / o.range_m)) <= LEAD_AGREEMENT_LN
+                       for m, p in plain.items() if m != n)}
+
+
+def combination_value(combo: dict[str, Option], min_score: float,
+                      lead_m: dict[str, float] | None = None
+                      ) -> tuple[float, Choice] | None:
     """(total value, choice) of one combination (laser -> option), or None when an option
-    fails in it (module docstring): r_ref is, of the ranges of the options taken on their own
-    evidence, the one that maximises the total."""
+    fails in it (module docstring). The options taken on their own evidence that agree with
+    another one are judged against r_ref, of their ranges the one that maximises the total; an
+    option no other agrees with against the other lasers (:func:`_lone_reference`; ``lead_m``:
+    :func:`lead_ranges`), as every laser was before the choice was joint."""
     plain = {n: o for n, o in combo.items() if not o.rescued}
     rescues = [o for o in combo.values() if o.rescued]
     if not plain:
@@ -156,14 +191,23 @@ def combination_value(combo: dict[str, Option], min_score: float) -> tuple[float
     rescue_values = [o.rescue * depth[n] for n, o in combo.items() if o.rescued]
     if rescue_values and min(rescue_values) < min_score:
         return None
+    refs = {n: _lone_reference(n, plain, lead_m or {}) for n in _lone(plain)}
+    lone_values = [plain[n].score * depth[n] * range_term(plain[n].range_m, r)
+                   for n, r in refs.items()]
+    if lone_values and min(lone_values) < min_score:
+        return None
+    together = {n: o for n, o in plain.items() if n not in refs}
+    candidates = {o.range_m for o in together.values()} or {
+        float(np.median([o.range_m for o in plain.values()]))}
     best: tuple[float, Choice] | None = None
-    for ref in {o.range_m for o in plain.values()}:
-        values = [o.score * depth[n] * range_term(o.range_m, ref) for n, o in plain.items()]
-        if min(values) < min_score or not all(agrees(o.range_m, ref) for o in rescues):
+    for ref in candidates:
+        values = [o.score * depth[n] * range_term(o.range_m, ref) for n, o in together.items()]
+        if (values and min(values) < min_score) or not all(agrees(o.range_m, ref)
+                                                          for o in rescues):
             continue
-        total = sum(values) + sum(rescue_values)
+        total = sum(values) + sum(lone_values) + sum(rescue_values)
         if best is None or total > best[0]:
-            best = (total, Choice(combo, ref, depth))
+            best = (total, Choice(combo, ref, depth, refs | dict.fromkeys(together, ref)))
     return best
 
 
@@ -193,13 +237,14 @@ def choose_jointly(options: dict[str, list[Option]], min_score: float) -> Choice
     highest total value (ties: more spots); an empty :class:`Choice` when none scores."""
     names = [n for n, opts in options.items() if opts]
     alts = _trimmed([_alternatives(options[n], min_score) for n in names])
+    lead_m = lead_ranges(options, min_score)
     best = Choice({})
     best_key = (0.0, 0)
     for pick in itertools.product(*alts):
         combo = {n: o for n, o in zip(names, pick, strict=True) if o is not None}
         if not combo or len({o.index for o in combo.values()}) < len(combo):
             continue
-        valued = combination_value(combo, min_score)
+        valued = combination_value(combo, min_score, lead_m)
         if valued is not None and (valued[0], len(combo)) > best_key:
             best, best_key = valued[1], (valued[0], len(combo))
     return best
