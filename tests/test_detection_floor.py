@@ -98,10 +98,10 @@ def test_planes_and_ranges_that_do_not_exist() -> None:
         DetectionOptions(floor_min_spots=1)
 
 
-def _image(spots: dict[str, tuple[float, float]], faint: str | None,
+def _image(spots: dict[str, tuple[float, float]], peaks: dict[str, float],
            rng: np.random.Generator) -> np.ndarray:
-    """Bright spots for every laser but ``faint`` (a 20th of their peak; None: no spot of L4 at
-    all), and 400 green specks brighter than the faint one all over the image."""
+    """The lasers' spots at peak 1.6 unless ``peaks`` says otherwise (0: no spot), and 400 green
+    specks of peak 0.1-0.3 all over the image."""
     img = np.empty((CAMERA.height, CAMERA.width, 3), np.float32)
     img[:] = WATER
     img += rng.normal(0.0, 0.004, img.shape).astype(np.float32)
@@ -110,14 +110,14 @@ def _image(spots: dict[str, tuple[float, float]], faint: str | None,
         if min(math.dist((x, y), xy) for xy in spots.values()) > 30:
             paint_spot(img, (x, y), "green", sigma_px=1.5, peak=float(rng.uniform(0.1, 0.3)))
     for name, xy in spots.items():
-        if name != "L4" or faint == "L4":
-            paint_spot(img, xy, "green", sigma_px=1.5, peak=0.08 if name == faint else 1.6)
+        if (peak := peaks.get(name, 1.6)) > 0:
+            paint_spot(img, xy, "green", sigma_px=1.5, peak=peak)
     return to_uint8(img, 2.2)
 
 
 def test_a_spot_the_band_hides_is_found_where_the_other_spots_floor_puts_it() -> None:
     truth = _spots((0.25, -0.2, 1.0), 2.8)
-    image = _image(truth, "L4", np.random.default_rng(5))
+    image = _image(truth, {"L4": 0.08}, np.random.default_rng(5))  # a 20th of the others
     rig = _rig()
     band_only = detect_spots(image, CAMERA, rig, DetectionOptions(floor_search=False))
     assert {s.laser for s in band_only.spots} == {"L1", "L2", "L3"}  # the specks hide L4
@@ -128,7 +128,7 @@ def test_a_spot_the_band_hides_is_found_where_the_other_spots_floor_puts_it() ->
     taken = [c for c in res.candidates if c.laser == "L4"]
     assert len(taken) == 1 and PLACE in taken[0].reason and "L4" not in res.near_misses
     # no spot of L4 at all: nothing taken, and its reason says what the floor search saw
-    empty = detect_spots(_image(truth, None, np.random.default_rng(5)), CAMERA, rig)
+    empty = detect_spots(_image(truth, {"L4": 0.0}, np.random.default_rng(5)), CAMERA, rig)
     assert "L4" not in {s.laser for s in empty.spots}
     assert PLACE in empty.missing["L4"]
 
@@ -138,17 +138,7 @@ def test_the_floor_is_searched_again_with_the_spots_the_second_look_took() -> No
     20th of the bright spots (found only on the floor). With ``floor_min_spots`` 3 the floor of
     L1 and L2 is not searched; the one through L1, L2 and L3 is, after the second look."""
     truth = _spots((0.25, -0.2, 1.0), 2.8)
-    rng = np.random.default_rng(5)
-    img = np.empty((CAMERA.height, CAMERA.width, 3), np.float32)
-    img[:] = WATER
-    img += rng.normal(0.0, 0.004, img.shape).astype(np.float32)
-    for _ in range(400):
-        x, y = rng.uniform(0, CAMERA.width), rng.uniform(0, CAMERA.height)
-        if min(math.dist((x, y), xy) for xy in truth.values()) > 30:
-            paint_spot(img, (x, y), "green", sigma_px=1.5, peak=float(rng.uniform(0.1, 0.3)))
-    for name, xy in truth.items():
-        paint_spot(img, xy, "green", sigma_px=1.5, peak={"L3": 0.3, "L4": 0.08}.get(name, 1.6))
-    image = to_uint8(img, 2.2)
+    image = _image(truth, {"L3": 0.3, "L4": 0.08}, np.random.default_rng(5))
     rig = _rig()
     res = detect_spots(image, CAMERA, rig, DetectionOptions(floor_min_spots=3))
     got = {s.laser: s for s in res.spots}
