@@ -15,7 +15,11 @@ each candidate to one laser (:func:`combination_value`):
   ``RANGE_FLOOR + (1 − RANGE_FLOOR)·exp(-½ (ln(r / r_ref) / RANGE_SIGMA_LN)²)`` and must reach
   ``min_score``. The floor keeps a strong spot on a step of the relief (a scarp, a coral head)
   that disagrees with the others. One reference shared by all, not the median of the others:
-  two spots on a step do not pull the two on the floor down with them;
+  two spots on a step do not pull the two on the floor down with them. An option that no other
+  option of the combination taken on its own evidence agrees with (within LEAD_AGREEMENT_LN) is
+  judged instead against the other lasers' ranges: their option in the combination, or else
+  their lead (best option reaching ``min_score``). Leaving a laser out of a combination does not
+  silence its lead: a laser-free frame's strong blobs lie at unrelated ranges;
 - *depth*: a beam lights nothing beyond the first surface it meets, so laser-coloured light
   farther along an option's beam (``Option.farther_m``) makes it a particle lit in the water or
   the beam's glow (× DEPTH), unless the option's range agrees better than that light's with the
