@@ -39,7 +39,6 @@ from sfm_laserscale.rig import Rig
 
 F64 = NDArray[np.float64]
 UNCALIBRATED_REASON = "uncalibrated laser: give its spots with --spots"
-_INADMISSIBLE = 1e6
 #: colour term from which a candidate counts as laser light (for the depth order)
 LIT_COLOUR = 0.7
 #: "farther" means beyond this fraction of the candidate's own range
@@ -72,10 +71,12 @@ def _score(m: Measure, beam: float, laser: str | None = None) -> float:
     return float(np.prod(list(evidence(m, beam, laser).values())))
 
 
-def single_score(m: Measure, beam: float, laser: str) -> float:
-    """A candidate's score for a laser on its own (without the range agreement)."""
+def option_score(m: Measure, beam: float, laser: str) -> float:
+    """A candidate's score for a laser on its own evidence: without the range agreement and
+    the depth term, which the joint choice judges against the spots taken with it."""
     ev = evidence(m, beam, laser)
     ev.pop("range")
+    ev.pop("depth")
     return float(np.prod(list(ev.values())))
 
 
@@ -133,13 +134,14 @@ def _beam_light(i: int, region: SearchRegion, valid: list[Measure], dist: F64,
     return sorted(lit, key=lambda j: -_score(valid[j], float(beam[j])))
 
 
-def _laser_costs(
+def _laser_scores(
     rig: Rig, region: SearchRegion, valid: list[Measure], options: DetectionOptions
 ) -> tuple[F64, F64, dict[str, str]]:
-    """(L, N) assignment cost -log(score) and distance to beam for calibrated lasers."""
+    """(L, N) option scores (:func:`option_score`; 0 where a laser may not take a candidate)
+    and distances to the beams (px) for calibrated lasers."""
     band = region.band_px
     xy = np.array([[m.x, m.y] for m in valid]).reshape(-1, 2)
-    cost = np.full((len(rig.lasers), len(valid)), _INADMISSIBLE)
+    scores = np.zeros((len(rig.lasers), len(valid)))
     dist = np.full((len(rig.lasers), len(valid)), np.inf)
     unseen: dict[str, str] = {}
     for i, las in enumerate(rig.lasers):
@@ -162,15 +164,8 @@ def _laser_costs(
         _mark_depth(las.name, i, region, valid, dist, lit[i], others_m)
         for j, m in enumerate(valid):
             if dist[i, j] <= band and las.color in ("any", m.color):
-                cost[i, j] = -math.log(max(single_score(m, float(beam[j]), las.name), 1e-12))
-    return cost, dist, unseen
-
-
-def _depth_free(scores: F64, valid: list[Measure], name: str) -> F64:
-    """A laser's candidate scores (N,) without their depth term (the joint choice decides it
-    against the spots chosen with them)."""
-    depth = np.array([m.depth.get(name, 1.0) for m in valid], dtype=np.float64)
-    return np.asarray(scores / np.maximum(depth, 1e-12), dtype=np.float64)
+                scores[i, j] = option_score(m, float(beam[j]), las.name)
+    return scores, dist, unseen
 
 
 def _farther(valid: list[Measure], name: str) -> dict[int, tuple[float, ...]]:
@@ -199,9 +194,8 @@ def assign_calibrated(
 ) -> tuple[dict[str, int], dict[str, str], F64]:
     """Laser name -> index into ``valid`` (chosen jointly, :mod:`.joint`); missing reasons;
     distances."""
-    cost, dist, missing = _laser_costs(rig, region, valid, options)
-    scores = np.where(cost < _INADMISSIBLE, np.exp(-cost), 0.0)
-    opts = {las.name: laser_options(las.name, _depth_free(scores[i], valid, las.name), region,
+    scores, dist, missing = _laser_scores(rig, region, valid, options)
+    opts = {las.name: laser_options(las.name, scores[i], region,
                                     valid, _farther(valid, las.name), MAX_OPTIONS)
             for i, las in enumerate(rig.lasers) if las.calibrated and las.name not in missing}
     choice = choose_jointly(opts, options.min_score)

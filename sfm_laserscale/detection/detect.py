@@ -56,13 +56,14 @@ def _candidate(m: Measure) -> Candidate:
                      evidence=tuple(m.evidence.items()), clutter_ratio=m.clutter_ratio)
 
 
-def _on_floor(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region: SearchRegion,
-              taken: dict[str, Measure], options: DetectionOptions
-              ) -> tuple[dict[str, Measure], dict[str, str]]:
-    """Spots found where the floor through the ``taken`` ones puts them (:mod:`.floor`),
-    marked assigned, and for the other lasers searched, what the search saw."""
+def _floor_round(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region: SearchRegion,
+                 valid: list[Measure], chosen: dict[str, int], options: DetectionOptions
+                 ) -> tuple[dict[str, Measure], dict[str, str]]:
+    """In place (``chosen``, ``valid``): one floor search (:mod:`.floor`) through the chosen
+    spots. Its spots, marked assigned, are appended to ``valid`` (``dist`` keeps the first
+    columns); returned with, for the other lasers searched, what the search saw."""
+    spots_px = {name: (valid[j].x, valid[j].y) for name, j in chosen.items()}
     found, why = {}, {}
-    spots_px = {name: (m.x, m.y) for name, m in taken.items()}
     for name, find in floor_search(image_rgb, camera, rig, region, spots_px, options).items():
         if find.measure is None:
             why[name] = find.why
@@ -71,17 +72,6 @@ def _on_floor(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region: Se
         m.score, m.laser = find.score, name
         m.reason = f"assigned to {name}: {PLACE}"
         found[name] = m
-    return found, why
-
-
-def _floor_round(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region: SearchRegion,
-                 valid: list[Measure], chosen: dict[str, int], options: DetectionOptions
-                 ) -> tuple[dict[str, Measure], dict[str, str]]:
-    """In place (``chosen``, ``valid``): one floor search (:func:`_on_floor`) through the
-    chosen spots; its spots are appended to ``valid`` (``dist`` keeps the first columns)."""
-    found, why = _on_floor(image_rgb, camera, rig, region,
-                           {name: valid[j] for name, j in chosen.items()}, options)
-    for name, m in found.items():
         valid.append(m)
         chosen[name] = len(valid) - 1
     return found, why
