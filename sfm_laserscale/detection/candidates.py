@@ -52,10 +52,9 @@ from sfm_laserscale.detection.score import (
 from sfm_laserscale.detection.shape import Blob, shape_and_contrast
 
 F32 = NDArray[np.float32]
-#: half-maximum radius (px) up to which a clipped core's rim is within the reach of demosaicing
-#: and 4:2:0 chroma, so its colour may read whitened (:mod:`.joint`) …
-WHITENED_MAX_RADIUS = 3.0
-#: … when its colour term is below this
+#: a clipped core whose colour term is below this reads whitened (:mod:`.joint`): demosaicing,
+#: 4:2:0 chroma and the sensor's spectral crosstalk whiten a bright core and its rim, whatever
+#: its size
 WHITENED_MAX_COLOUR = 0.5
 #: maxima below the clutter gate measured for the second look, per response
 SECOND_LOOK_MAX = 12
@@ -208,8 +207,7 @@ def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
         m.colour = colour_around(planes.channels, planes.clipped_laser, planes.clipped_any,
                                  (x, y), (m.radius_px, m.support_px), CHANNELS[m.color],
                                  options.colour_tau, clipped=m.bright)
-        m.whitened = (m.bright and m.colour.measured and m.colour.term < WHITENED_MAX_COLOUR
-                      and m.radius_px <= WHITENED_MAX_RADIUS)
+        m.whitened = m.bright and m.colour.measured and m.colour.term < WHITENED_MAX_COLOUR
     else:
         m.colour = ColourEvidence(1.0)
     m.terms = {"contrast": contrast_term(m.snr, options.snr_half),

@@ -25,9 +25,9 @@ each candidate to one laser (:func:`combination_value`):
   the beam's glow (× DEPTH), unless the option's range agrees better than that light's with the
   median range of the combination's other options: then the other spots sit at the option's
   range and the farther light is a laser-coloured speck of the scene;
-- a small clipped core's colour is often not readable at all: demosaicing, 4:2:0 chroma and
-  the white balance whiten its rim, so it reads like a glint (``Measure.whitened``: half-maximum
-  radius at most ``candidates.WHITENED_MAX_RADIUS``; a larger glint shows its own colour). It
+- a clipped core's colour is often not readable at all: demosaicing, 4:2:0 chroma, the white
+  balance and the sensor's spectral crosstalk (a laser many times white raises the other
+  channels to clipping too) whiten its rim, so it reads like a glint (``Measure.whitened``). It
   may be taken with CLIPPED_COLOUR for its colour term (``Option.rescue``) where its range
   agrees within RESCUE_RANGE_LN with r_ref of options taken on their own evidence: a glint sits
   anywhere along a band, a laser's spot at the range of the other spots. Whitened cores that
