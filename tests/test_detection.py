@@ -280,13 +280,36 @@ def test_sigma_grows_with_light_that_is_not_point_symmetric() -> None:
     assert all(s == pytest.approx(0.1, abs=1e-3) for _, s in flat)
 
 
+def _range_of(rig: Rig, name: str, xy: np.ndarray) -> float:
+    """Range (m) of the beam's point nearest the image point ``xy``."""
+    las = rig.laser(name)
+    assert las.origin is not None and las.direction is not None
+    ranges = np.linspace(0.5, 10.0, 4000)
+    pts = PINHOLE.project(las.origin[None, :] + ranges[:, None] * las.direction[None, :])
+    return float(ranges[int(np.argmin(np.hypot(*(pts - xy).T)))])
+
+
+def _glint_px(rig: Rig, truth: dict[str, np.ndarray]) -> np.ndarray:
+    """A point of L4's beam whose range is at least 35 % from every other spot's range."""
+    las = rig.laser("L4")
+    assert las.origin is not None and las.direction is not None
+    others = [_range_of(rig, n, xy) for n, xy in truth.items() if n != "L4"]
+    r4 = _range_of(rig, "L4", truth["L4"])
+    r = next(r4 * k for k in (1.4, 0.7, 1.8, 0.5, 2.5, 0.35)
+             if 0.6 < r4 * k < 9.0 and all(abs(math.log(r4 * k / o)) > 0.3 for o in others))
+    return PINHOLE.project((las.origin + r * las.direction)[None, :])[0]
+
+
 def _distractors(img: np.ndarray, rig: Rig, truth: dict[str, np.ndarray]) -> None:
     """White highlight and a huge red blob near L4's band (L4's spot is absent), and a
     compact red blob far off every band."""
     yy, xx = np.mgrid[0 : img.shape[0], 0 : img.shape[1]] + 0.5
     near = truth["L4"]
-    # specular highlight: very bright, white, no colour halo, exactly where L4's spot would be
-    r2 = (xx - near[0]) ** 2 + (yy - near[1]) ** 2
+    # specular highlight: very bright, white, no colour halo, on L4's beam away from the other
+    # spots' ranges (a white clipped blob at their range is read as a whitened laser core,
+    # docs/DETECTION.md)
+    glint = _glint_px(rig, truth)
+    r2 = (xx - glint[0]) ** 2 + (yy - glint[1]) ** 2
     img += (2.5 * np.exp(-0.5 * r2 / 2.0**2))[..., None].astype(np.float32)
     # huge red blob (organism) with its edge near L4's beam, 45 px further out on its segment
     line = beam_polyline_px(PINHOLE, rig.laser("L4"), 0.5, 10.0)
