@@ -3,9 +3,9 @@
 :func:`detect_spots` chains the stages of this package: where to look (:mod:`.beams`), the
 responses (:mod:`.response`), candidates measured, refined and scored (:mod:`.candidates`,
 :mod:`.shape`, :mod:`.refine`, :mod:`.score`), the assignment to lasers (:mod:`.assign`), the
-search where the plane through the spots found meets a missing laser's beam (:mod:`.floor`)
-and the reasons for lasers without a spot (:mod:`.explain`). Every candidate is returned with
-what became of it.
+search where the plane through the spots found meets a missing laser's beam (:mod:`.floor`),
+a lone spot's stricter test (:func:`_drop_alone`) and the reasons for lasers without a spot
+(:mod:`.explain`). Every candidate is returned with what became of it.
 """
 
 from __future__ import annotations
@@ -95,6 +95,25 @@ def _floor_then_second_look(image_rgb: NDArray[np.uint8], camera: Camera, rig: R
     return on_floor, why
 
 
+def _drop_alone(rig: Rig, valid: list[Measure], chosen: dict[str, int], unseen: dict[str, str],
+                options: DetectionOptions) -> None:
+    """In place (``chosen``): a spot alone in its image (the only laser's spot, with two or more
+    other calibrated beams in view; ``unseen``: lasers whose beam is outside the image) is
+    dropped when it scores below ``options.alone_min_score``: nothing corroborates it."""
+    in_view = [las for las in rig.lasers if las.calibrated and las.name not in unseen]
+    if len(chosen) != 1 or len(in_view) < 3:
+        return
+    (name, j), = chosen.items()
+    m = valid[j]
+    if m.score >= options.alone_min_score:
+        return
+    m.laser = None
+    m.reason = (f"alone in its image: score {m.score:.2f} < alone_min_score "
+                f"{options.alone_min_score:g} (no other laser's spot, {len(in_view) - 1} other "
+                "beams in view)")
+    del chosen[name]
+
+
 def detect_spots(
     image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
     options: DetectionOptions = DetectionOptions(),  # noqa: B008 (frozen dataclass)
@@ -108,6 +127,7 @@ def detect_spots(
     chosen, missing, dist = assign_calibrated(rig, region, valid, options)
     on_floor, floor_why = _floor_then_second_look(image_rgb, camera, rig, region, measures,
                                                   valid, chosen, options)
+    _drop_alone(rig, valid, chosen, missing, options)
     for name in chosen:
         missing.pop(name, None)
     chosen_u, missing_u = assign_uncalibrated(rig, valid, set(chosen.values()), options)

@@ -68,6 +68,10 @@ class DetectionOptions:
     - ``colour_evidence``: False leaves colour out of the score (a neutral calibration target,
       whose black/white edges through a spot look like light of the target's colour).
     - ``min_score``: an assigned spot with a lower score is reported in ``missing`` instead.
+    - ``alone_min_score``: the score a spot needs when it is alone in its image (no other
+      laser's spot after the floor search and the second look, while two or more other
+      calibrated beams are in view): nothing corroborates it, and the bands of laser-free
+      photographs hold blobs that score 0.25-0.6 on their own (docs/DETECTION.md).
 
     Where the other spots put a missing one (:mod:`.floor`):
 
@@ -106,6 +110,7 @@ class DetectionOptions:
     colour_tau: float = 0.07
     colour_evidence: bool = True
     min_score: float = 0.25
+    alone_min_score: float = 0.6
     floor_search: bool = True
     floor_min_spots: int = 2
     floor_radius_px: float | None = None
@@ -130,7 +135,8 @@ class DetectionOptions:
                              f"{self.response!r}")
         if self.refine not in ("centroid", "gaussian"):
             raise InputError(f"refine must be 'centroid' or 'gaussian', got {self.refine!r}")
-        for name in ("min_clutter_ratio", "second_look_clutter_ratio", "sigma_floor_px",
+        for name in ("min_clutter_ratio", "second_look_clutter_ratio", "alone_min_score",
+                     "sigma_floor_px",
                      "sigma_window_gain", "sigma_asymmetry_gain"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
