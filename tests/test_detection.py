@@ -22,6 +22,7 @@ from sfm_laserscale.detection import (
     detect_spots,
     distance_to_polyline,
 )
+from sfm_laserscale.detection.beams import range_along_beam, search_region
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.model import Camera
 from sfm_laserscale.rig import Laser, Rig, rig_from_dict
@@ -282,11 +283,8 @@ def test_sigma_grows_with_light_that_is_not_point_symmetric() -> None:
 
 def _range_of(rig: Rig, name: str, xy: np.ndarray) -> float:
     """Range (m) of the beam's point nearest the image point ``xy``."""
-    las = rig.laser(name)
-    assert las.origin is not None and las.direction is not None
-    ranges = np.linspace(0.5, 10.0, 4000)
-    pts = PINHOLE.project(las.origin[None, :] + ranges[:, None] * las.direction[None, :])
-    return float(ranges[int(np.argmin(np.hypot(*(pts - xy).T)))])
+    region = search_region(PINHOLE, rig, DetectionOptions())
+    return float(range_along_beam(xy, region.polylines[name], region.ranges[name])[0])
 
 
 def _glint_px(rig: Rig, truth: dict[str, np.ndarray]) -> np.ndarray:
