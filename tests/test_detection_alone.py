@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -38,10 +39,7 @@ def test_a_two_laser_rig_keeps_its_lone_spot() -> None:
     truth = _spots((0.1, -0.1, 1.0), 2.5)
     image = _image(truth, {"L2": 0.0, "L3": 0.0, "L4": 0.0}, np.random.default_rng(3))
     full = _rig()
-    two = rig_from_dict({"laser": [
-        {"name": las.name, "origin": list(las.origin), "direction": list(las.direction),
-         "color": "green"} for las in full.lasers[:2] if las.origin is not None
-        and las.direction is not None]})
+    two = replace(full, lasers=full.lasers[:2])
     res = detect_spots(image, CAMERA, two, DetectionOptions(alone_min_score=1.0))
     assert [s.laser for s in res.spots] == ["L1"]
 
