@@ -136,8 +136,7 @@ class DetectionOptions:
         if self.refine not in ("centroid", "gaussian"):
             raise InputError(f"refine must be 'centroid' or 'gaussian', got {self.refine!r}")
         for name in ("min_clutter_ratio", "second_look_clutter_ratio", "alone_min_score",
-                     "sigma_floor_px",
-                     "sigma_window_gain", "sigma_asymmetry_gain"):
+                     "sigma_floor_px", "sigma_window_gain", "sigma_asymmetry_gain"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("snr_half", "clutter_half", "colour_tau"):
