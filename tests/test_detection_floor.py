@@ -4,21 +4,26 @@ on planes), and the search there (a spot the band's blobs hide is found, a reaso
 from __future__ import annotations
 
 import math
+import tomllib
 
 import numpy as np
 import pytest
 
+from sfm_laserscale.commands.detect import parse_camera
 from sfm_laserscale.detection import DetectionOptions, detect_spots
 from sfm_laserscale.detection.beams import search_region
 from sfm_laserscale.detection.floor import (
     PLACE,
     beam_range_on_plane,
+    default_floor_radius_px,
     floor_plane,
     floor_predictions,
 )
+from sfm_laserscale.detection.guided import GuidedOptions, search_near
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.rig import Rig, rig_from_dict
 from sfm_laserscale.synthetic.spots import paint_spot, to_uint8
+from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
 from tests.test_detection_second_look import CAMERA, WATER
 
 RANGES = (0.5, 10.0)
@@ -150,3 +155,31 @@ def test_the_floor_is_searched_again_with_the_spots_the_second_look_took() -> No
     off = detect_spots(image, CAMERA, rig,
                        DetectionOptions(floor_min_spots=3, second_look_clutter_ratio=1.5))
     assert {s.laser for s in off.spots} == {"L1", "L2"} and PLACE not in off.missing["L4"]
+
+
+@pytest.mark.parametrize(("index", "name"), [(15, "L4"), (17, "L3")])
+def test_a_spot_on_bright_water_is_refined_at_the_other_spots_radius(index: int,
+                                                                      name: str) -> None:
+    """Green water near full scale (physical generator): the spot's half-maximum region runs
+    into its bright surroundings (a radius of 8.5 px for frame 15's 3 × 2 px clipped core), and
+    a centroid window that wide wanders off it. Near the floor's prediction it is refined again
+    at the found spots' median radius, and taken (both were missed before)."""
+    ci = list(CONDITIONS).index("green_water")
+    frame = render_frame("green_water", 1920, 1080, np.random.default_rng([0, ci, 0, index]))
+    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
+    truth = frame.truth[name]
+    assert truth is not None
+    res = detect_spots(frame.image_rgb, camera, rig)
+    got = {s.laser: s for s in res.spots}
+    assert name in got, res.missing.get(name)
+    assert math.dist((got[name].x, got[name].y), truth) < 1.5
+    assert PLACE in next(c.reason for c in res.candidates if c.laser == name)
+    others = float(np.median([c.radius_px for c in res.candidates
+                              if c.laser is not None and c.laser != name]))
+    guided = GuidedOptions(radius_px=default_floor_radius_px(camera.width, camera.height))
+    alone = search_near(frame.image_rgb, camera, rig, name, truth, DetectionOptions(), guided)
+    assert alone[0] is None and "sub-pixel refinement failed" in alone[2]
+    helped, score, _ = search_near(frame.image_rgb, camera, rig, name, truth,
+                                   DetectionOptions(), guided, PLACE, others)
+    assert helped is not None and score >= guided.min_score
+    assert helped.radius_px == others and math.dist((helped.x, helped.y), truth) < 1.5

@@ -128,7 +128,12 @@ def distance_to_polyline(xy: F64, polyline: F64) -> F64:
 
 @dataclass(frozen=True)
 class SearchRegion:
-    """Where to look: crop of the image, beam polylines and the near-band mask (crop pixels)."""
+    """Where to look: crop of the image, beam polylines and the near-band mask (crop pixels).
+
+    ``spot_radius_px``: the half-maximum radius of the spots already found in the image, when
+    known (a search near one point, :mod:`.floor`): a maximum whose sub-pixel refinement fails
+    at its own measured radius is refined again at this one (:mod:`.candidates`).
+    """
 
     roi: tuple[int, int, int, int]  # x0, y0, x1, y1 (array indices, end exclusive)
     polylines: dict[str, F64]  # calibrated laser -> (K, 2) beam segment, image COLMAP px
@@ -136,6 +141,7 @@ class SearchRegion:
     near: NDArray[np.bool_] | None  # (y1-y0, x1-x0) within reach of a band; None = everywhere
     band_px: float
     max_radius: float
+    spot_radius_px: float | None = None
 
 
 def search_region(camera: Camera, rig: Rig, options: DetectionOptions) -> SearchRegion:

@@ -56,6 +56,9 @@ F32 = NDArray[np.float32]
 #: 4:2:0 chroma and the sensor's spectral crosstalk whiten a bright core and its rim, whatever
 #: its size
 WHITENED_MAX_COLOUR = 0.5
+#: a maximum refined at the other spots' radius r takes the support radius max(MIN_SUPPORT_PX,
+#: 2 r + 2) px (:func:`.shape.shape_and_contrast` measures a spot's as at least 4 px and 2 r)
+MIN_SUPPORT_PX = 4.0
 #: maxima below the clutter gate measured for the second look, per response
 SECOND_LOOK_MAX = 12
 WEAKER_THAN_SCENE = "no stronger than the scene's own blobs"
@@ -187,9 +190,9 @@ def _shape(m: Measure, plane: F32, bright_plane: F32 | None, planes: Planes,
 
 
 def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
-             rc: tuple[int, int], options: DetectionOptions, max_radius: float) -> None:
+             rc: tuple[int, int], options: DetectionOptions, region: SearchRegion) -> None:
     """In place: shape, refinement, added light and evidence terms of one maximum."""
-    blob = _shape(m, plane, bright_plane, planes, rc, options, max_radius)
+    blob = _shape(m, plane, bright_plane, planes, rc, options, region.max_radius)
     m.radius_px, m.roundness, m.snr, m.support_px = (blob.radius, blob.roundness, blob.snr,
                                                      blob.support)
     m.rejected = blob.rejection
@@ -197,10 +200,11 @@ def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
         m.rejected = f"weak (SNR {m.snr:.1f} < {options.min_snr:g})"
     if m.rejected is not None:
         return
-    x, y, sig = refine_spot(planes, m.guess(), options.refine, sigma_model=options.sigma_model)
-    if not (math.isfinite(sig) and math.hypot(x - m.x, y - m.y) <= max(2.0, m.radius_px)):
+    refined = _refined(planes, m, options, region.spot_radius_px)
+    if refined is None:
         m.rejected = "sub-pixel refinement failed"
         return
+    x, y, sig = refined
     m.x, m.y = x, y
     m.sigma_px = sig
     if options.colour_evidence:
@@ -213,6 +217,34 @@ def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
     m.terms = {"contrast": contrast_term(m.snr, options.snr_half),
                "roundness": math.sqrt(max(m.roundness, 0.0)),
                "clutter": clutter_term(m.clutter_ratio, options.clutter_half)}
+
+
+def _refined(planes: Planes, m: Measure, options: DetectionOptions,
+             spot_radius_px: float | None) -> tuple[float, float, float] | None:
+    """Sub-pixel centre and σ of a measured maximum (crop px), or None when the refinement
+    fails: no finite result, or a centre beyond max(2, radius) px of the maximum.
+
+    A maximum on bright surroundings (a lit patch, green water near full scale) can measure a
+    half-maximum region that runs into them (8 px for a 1.7 px clipped core), and a centroid
+    window that wide wanders off the spot. Where the radius of the image's other spots is known
+    (``spot_radius_px``, a search near a predicted point) and smaller, such a maximum is refined
+    again at that radius, and takes it: the spots of one scaler on one floor are footprints of
+    like beams at like ranges.
+    """
+    def attempt(radius: float, support: float) -> tuple[float, float, float] | None:
+        guess = SpotGuess(m.x, m.y, radius, support, m.bright)
+        x, y, sig = refine_spot(planes, guess, options.refine, sigma_model=options.sigma_model)
+        ok = math.isfinite(sig) and math.hypot(x - m.x, y - m.y) <= max(2.0, radius)
+        return (x, y, sig) if ok else None
+
+    refined = attempt(m.radius_px, m.support_px)
+    if refined is not None or spot_radius_px is None or spot_radius_px >= m.radius_px:
+        return refined
+    support = max(MIN_SUPPORT_PX, 2.0 * spot_radius_px + 2.0)
+    refined = attempt(spot_radius_px, support)
+    if refined is not None:
+        m.radius_px, m.support_px = spot_radius_px, support
+    return refined
 
 
 def candidates_for_colour(
@@ -243,7 +275,7 @@ def candidates_for_colour(
                 n_second += 1
                 _measure_second_look(out, m, rc, planes, src, bright_plane, options, region)
             elif m.rejected is None:
-                _measure(planes, m, src.plane, bright_plane, rc, options, region.max_radius)
+                _measure(planes, m, src.plane, bright_plane, rc, options, region)
                 m.rejected = m.rejected or _covering(out, m, region.roi[:2])
                 n_valid += m.rejected is None
             if src.name == "bright" and m.rejected is not None and m.rejected.startswith("dup"):
@@ -275,7 +307,7 @@ def _measure_second_look(out: list[Measure], m: Measure, rc: tuple[int, int], pl
     (``rejected`` keeps the gate's reason, and the test it then failed) and is marked
     ``second_look`` when it measured."""
     m.rejected = None
-    _measure(planes, m, src.plane, bright_plane, rc, options, region.max_radius)
+    _measure(planes, m, src.plane, bright_plane, rc, options, region)
     failed = m.rejected or _covering(out, m, region.roi[:2])
     m.second_look = failed is None
     then = f"and {failed}" if failed else "taken only at the range of the other lasers' spots"
@@ -300,7 +332,7 @@ def _better_of_the_two(out: list[Measure], m: Measure, rc: tuple[int, int], plan
         return
     o = near[0]
     m.rejected = None
-    _measure(planes, m, src.plane, bright_plane, rc, options, region.max_radius)
+    _measure(planes, m, src.plane, bright_plane, rc, options, region)
     if m.rejected is None and m.base_score * m.colour.term > o.base_score * o.colour.term:
         out[out.index(o)] = m
 

@@ -63,8 +63,10 @@ def _floor_round(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region:
     spots. Its spots, marked assigned, are appended to ``valid`` (``dist`` keeps the first
     columns); returned with, for the other lasers searched, what the search saw."""
     spots_px = {name: (valid[j].x, valid[j].y) for name, j in chosen.items()}
+    radius = float(np.median([valid[j].radius_px for j in chosen.values()])) if chosen else None
     found, why = {}, {}
-    for name, find in floor_search(image_rgb, camera, rig, region, spots_px, options).items():
+    for name, find in floor_search(image_rgb, camera, rig, region, spots_px, options,
+                                   radius).items():
         if find.measure is None:
             why[name] = find.why
             continue

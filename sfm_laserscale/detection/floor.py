@@ -137,10 +137,11 @@ def default_floor_radius_px(width: int, height: int) -> float:
 
 
 def floor_search(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region: SearchRegion,
-                 spots_px: Mapping[str, tuple[float, float]], options: DetectionOptions
-                 ) -> dict[str, FloorFind]:
+                 spots_px: Mapping[str, tuple[float, float]], options: DetectionOptions,
+                 spot_radius_px: float | None = None) -> dict[str, FloorFind]:
     """Laser -> what the search found where the floor through ``spots_px`` (laser -> COLMAP
-    (x, y), the spots found so far) puts each other calibrated laser's spot."""
+    (x, y), the spots found so far; ``spot_radius_px``: their median half-max radius) puts
+    each other calibrated laser's spot."""
     if not options.floor_search:
         return {}
     predicted = floor_predictions(camera, rig, region, spots_px, options.floor_min_spots,
@@ -148,5 +149,5 @@ def floor_search(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region:
     radius = options.floor_radius_px or default_floor_radius_px(camera.width, camera.height)
     guided = GuidedOptions(radius_px=radius)
     return {name: FloorFind(*search_near(image_rgb, camera, rig, name, xy, options, guided,
-                                         PLACE))
+                                         PLACE, spot_radius_px))
             for name, xy in predicted.items()}

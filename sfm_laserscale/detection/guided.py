@@ -82,7 +82,7 @@ def _window(camera: Camera, xy: tuple[float, float], reach: int) -> tuple[int, i
 
 
 def _region(camera: Camera, xy: tuple[float, float], radius: float, max_radius: float,
-            options: DetectionOptions) -> SearchRegion:
+            options: DetectionOptions, spot_radius_px: float | None) -> SearchRegion:
     """The image searched around a prediction: maxima within ``radius`` (+1 px) of it."""
     reach = int(math.ceil(radius + 2.0 * max_radius + 4.0 * max(options.spot_sigmas_px) + 8.0))
     roi = _window(camera, xy, reach)
@@ -90,7 +90,7 @@ def _region(camera: Camera, xy: tuple[float, float], radius: float, max_radius: 
     cols = np.arange(x0, x1) + 0.5
     rows = np.arange(y0, y1) + 0.5
     near = np.hypot(cols[None, :] - xy[0], rows[:, None] - xy[1]) <= radius + 1.0
-    return SearchRegion(roi, {}, {}, near, radius, max_radius)
+    return SearchRegion(roi, {}, {}, near, radius, max_radius, spot_radius_px)
 
 
 def evidence_terms(m: Measure, colour_floor: float) -> dict[str, float]:
@@ -130,15 +130,18 @@ def _best(measures: list[Measure], xy: tuple[float, float], guided: GuidedOption
 
 def search_near(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, laser: str,
                 xy: tuple[float, float], options: DetectionOptions, guided: GuidedOptions,
-                place: str = MODEL_PLACE) -> tuple[Measure | None, float, str]:
+                place: str = MODEL_PLACE, spot_radius_px: float | None = None
+                ) -> tuple[Measure | None, float, str]:
     """The candidate taken for ``laser`` within ``guided.radius_px`` of the COLMAP point ``xy``
-    and its evidence, or (None, 0, why not); ``place`` names the point in the reasons."""
+    and its evidence, or (None, 0, why not); ``place`` names the point in the reasons,
+    ``spot_radius_px`` the half-max radius of the image's other spots when known (a maximum
+    whose refinement fails at its own radius is refined again at it, :mod:`.candidates`)."""
     las = rig.laser(laser)
     max_radius = options.max_spot_radius_px or default_max_spot_radius_px(
         camera.width, camera.height)
     if not (0 <= xy[0] <= camera.width and 0 <= xy[1] <= camera.height):
         return None, 0.0, f"({xy[0]:.1f}, {xy[1]:.1f}), {place}, is outside the image"
-    region = _region(camera, xy, guided.radius_px, max_radius, options)
+    region = _region(camera, xy, guided.radius_px, max_radius, options, spot_radius_px)
     ungated = replace(options, min_clutter_ratio=0.0, second_look_clutter_ratio=0.0,
                       min_snr=options.min_snr if guided.min_snr is None else guided.min_snr)
     channels = crop_channels(image_rgb, region.roi, options.input_gamma)
