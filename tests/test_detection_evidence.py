@@ -285,3 +285,29 @@ def test_snr_is_measured_against_local_noise_not_the_scene_shading() -> None:
     assert flat.rejection is None and shaded.rejection is None
     assert flat.snr > 20
     assert shaded.snr > 0.7 * flat.snr
+
+
+def test_a_spot_on_a_bright_patch_is_measured_against_the_patch_at_the_expected_radius() -> None:
+    """A spot (σ 1.2 px: half-max radius 1.41 px) inside a pale patch 14 px in radius: against
+    the far background its half-maximum region is the patch; against its own surroundings at
+    the other spots' radius (1.5 px) it is the spot. A blob of σ 4 px is larger than a spot
+    there, and noise alone is weak."""
+    from sfm_laserscale.detection.shape import local_shape, shape_and_contrast
+
+    rng = np.random.default_rng(7)
+    yy, xx = np.mgrid[0:120, 0:120] + 0.5
+    patch = 0.4 / (1.0 + np.exp((np.hypot(xx - 60.0, yy - 60.0) - 14.0) / 0.7))  # soft edge
+    spot = 0.3 * np.exp(-0.5 * ((xx - 60.2) ** 2 + (yy - 59.9) ** 2) / 1.2**2)
+    noise = rng.normal(0.0, 0.01, xx.shape)
+    both = (0.2 + patch + spot + noise).astype(np.float32)
+    assert shape_and_contrast(both, 59, 60, 33.0, 0.5).radius > 10.0  # the patch's
+    local = local_shape(both, 59, 60, 1.5)
+    assert local is not None
+    assert local.radius == pytest.approx(1.2 * math.sqrt(2.0 * math.log(2.0)), abs=0.3)
+    assert local.snr == pytest.approx(0.3 / 0.01, rel=0.3)
+    wide = 0.3 * np.exp(-0.5 * ((xx - 60.0) ** 2 + (yy - 60.0) ** 2) / 4.0**2)
+    assert local_shape((0.2 + wide + noise).astype(np.float32), 60, 60, 1.5) is None
+    flat = (0.2 + noise).astype(np.float32)
+    row, col = np.unravel_index(np.argmax(flat[50:70, 50:70]), (20, 20))
+    blob = local_shape(flat, int(row) + 50, int(col) + 50, 1.5)
+    assert blob is None or blob.snr < 5.0

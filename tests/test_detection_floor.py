@@ -183,3 +183,32 @@ def test_a_spot_on_bright_water_is_refined_at_the_other_spots_radius(index: int,
                                    DetectionOptions(), guided, PLACE, others)
     assert helped is not None and score >= guided.min_score
     assert helped.radius_px == others and math.dist((helped.x, helped.y), truth) < 1.5
+
+
+@pytest.mark.parametrize(("seed", "condition", "index", "name", "failed"), [
+    (0, "turbid_brown", 10, "L4", "not compact"),  # a clipped core on a lit patch
+    (1, "green_all", 4, "L2", "weak"),
+])
+def test_a_spot_near_the_floors_prediction_is_measured_against_its_own_surroundings(
+        seed: int, condition: str, index: int, name: str, failed: str) -> None:
+    """Physical frames: measured against the far background, the maximum at the spot fails a
+    shape test; near the floor's prediction, with the other spots' radius to expect, it is
+    measured against its own surroundings and taken (both were missed before)."""
+    ci = list(CONDITIONS).index(condition)
+    frame = render_frame(condition, 1920, 1080, np.random.default_rng([seed, ci, 0, index]))
+    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
+    truth = frame.truth[name]
+    assert truth is not None
+    res = detect_spots(frame.image_rgb, camera, rig)
+    got = {s.laser: s for s in res.spots}
+    assert name in got, res.missing.get(name)
+    assert math.dist((got[name].x, got[name].y), truth) < 1.5
+    others = float(np.median([c.radius_px for c in res.candidates
+                              if c.laser is not None and c.laser != name]))
+    guided = GuidedOptions(radius_px=default_floor_radius_px(camera.width, camera.height))
+    alone = search_near(frame.image_rgb, camera, rig, name, truth, DetectionOptions(), guided)
+    assert alone[0] is None and failed in alone[2]
+    helped, score, _ = search_near(frame.image_rgb, camera, rig, name, truth,
+                                   DetectionOptions(), guided, PLACE, others)
+    assert helped is not None and score >= guided.min_score and helped.snr >= 5.0
+    assert math.dist((helped.x, helped.y), truth) < 1.5

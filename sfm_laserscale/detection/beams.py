@@ -131,8 +131,10 @@ class SearchRegion:
     """Where to look: crop of the image, beam polylines and the near-band mask (crop pixels).
 
     ``spot_radius_px``: the half-maximum radius of the spots already found in the image, when
-    known (a search near one point, :mod:`.floor`): a maximum whose sub-pixel refinement fails
-    at its own measured radius is refined again at this one (:mod:`.candidates`).
+    known (a search near one point, :mod:`.floor`): a maximum that fails a shape test against
+    the far background is measured against its own surroundings for a spot of this radius, and
+    one whose sub-pixel refinement fails at its own measured radius is refined again at this
+    one (:mod:`.candidates`).
     """
 
     roi: tuple[int, int, int, int]  # x0, y0, x1, y1 (array indices, end exclusive)

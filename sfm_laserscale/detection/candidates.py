@@ -49,7 +49,7 @@ from sfm_laserscale.detection.score import (
     colour_around,
     contrast_term,
 )
-from sfm_laserscale.detection.shape import Blob, shape_and_contrast
+from sfm_laserscale.detection.shape import Blob, local_shape, shape_and_contrast
 
 F32 = NDArray[np.float32]
 #: a clipped core whose colour term is below this reads whitened (:mod:`.joint`): demosaicing,
@@ -177,22 +177,30 @@ def _unmeasured_reason(m: Measure, rc: tuple[int, int], src: _Source, region: Se
 
 
 def _shape(m: Measure, plane: F32, bright_plane: F32 | None, planes: Planes,
-           rc: tuple[int, int], options: DetectionOptions, max_radius: float) -> Blob:
+           rc: tuple[int, int], options: DetectionOptions, region: SearchRegion) -> Blob:
     """Shape of a maximum on its own response; a blob whose laser channel clips and that fails
-    there (a colour response flat over a wide clipped halo) is measured on the brightness."""
+    there (a colour response flat over a wide clipped halo) is measured on the brightness.
+    Where the image's other spots give the radius to expect (``region.spot_radius_px``), a
+    blob that fails against the far background is measured against its own surroundings
+    (:func:`.shape.local_shape`) and taken when it stands ``min_snr`` above them."""
     row, col = rc
-    blob = shape_and_contrast(plane, row, col, max_radius, options.max_annulus_ratio)
+    blob = shape_and_contrast(plane, row, col, region.max_radius, options.max_annulus_ratio)
     core = planes.clipped_laser[max(0, row - 2):row + 3, max(0, col - 2):col + 3]
     m.bright = bool(core.any())
-    if blob.rejection is None or not m.bright or bright_plane is None or plane is bright_plane:
+    if (blob.rejection is not None and m.bright and bright_plane is not None
+            and plane is not bright_plane):
+        plane = bright_plane
+        blob = shape_and_contrast(plane, row, col, region.max_radius, options.max_annulus_ratio)
+    if region.spot_radius_px is None or (blob.rejection is None and blob.snr >= options.min_snr):
         return blob
-    return shape_and_contrast(bright_plane, row, col, max_radius, options.max_annulus_ratio)
+    local = local_shape(plane, row, col, region.spot_radius_px)
+    return local if local is not None and local.snr >= options.min_snr else blob
 
 
 def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
              rc: tuple[int, int], options: DetectionOptions, region: SearchRegion) -> None:
     """In place: shape, refinement, added light and evidence terms of one maximum."""
-    blob = _shape(m, plane, bright_plane, planes, rc, options, region.max_radius)
+    blob = _shape(m, plane, bright_plane, planes, rc, options, region)
     m.radius_px, m.roundness, m.snr, m.support_px = (blob.radius, blob.roundness, blob.snr,
                                                      blob.support)
     m.rejected = blob.rejection

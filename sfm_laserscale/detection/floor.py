@@ -10,7 +10,8 @@ that point projected is where its spot should be (:func:`floor_predictions`), wi
 floor's relief and the rig's calibration error (measured in docs/DETECTION.md: a median
 2.3 px at 1920 × 1080). :func:`.detect.detect_spots` searches a few pixels around each such
 point with :func:`.guided.search_near`, where the band's competition (scene blobs as
-strong as a faint spot, hundreds of pixels of band) is gone.
+strong as a faint spot, hundreds of pixels of band) is gone, and the spots found give the size
+to expect (their median half-max radius, :class:`.beams.SearchRegion`'s ``spot_radius_px``).
 """
 
 from __future__ import annotations

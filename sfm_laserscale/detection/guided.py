@@ -17,7 +17,9 @@ evidence (contrast × roundness × colour) reaches ``min_score``. Colour counts 
 clipped core whose colour reads whitened (:mod:`.joint`) takes colour term 1 there, as it does
 at the other spots' range.
 Every hard test of the detector still applies (too large, not compact, SNR below ``min_snr``,
-refinement failed).
+refinement failed). Given the radius of the image's other spots (the floor search), a maximum
+that fails the shape tests against the far background is measured against its own
+surroundings at that radius, and one whose refinement fails is refined again at it.
 """
 
 from __future__ import annotations

@@ -81,6 +81,13 @@ def _support_radius(excess: F32, rr: F64, contrast: float, radius: float, limit:
     return float(max(start, min(len(profile), int(limit)) - 1))
 
 
+def _ring_plane(patch: F32, gx: F64, gy: F64, in_ring: NDArray[np.bool_]) -> F64:
+    """(3,) coefficients (1, x, y) of the least-squares plane through a ring's values."""
+    design = np.column_stack([np.ones(in_ring.sum()), gx[in_ring], gy[in_ring]])
+    coef, *_ = np.linalg.lstsq(design, patch[in_ring].astype(np.float64), rcond=None)
+    return np.asarray(coef)
+
+
 def _ring_noise(patch: F32, gx: F64, gy: F64, in_ring: NDArray[np.bool_]) -> float:
     """Robust std of a ring's values about a plane fitted to them: the scene's shading across
     the ring (a strobe's hot spot, a lit slope) is no noise a spot has to stand above. A plain
@@ -89,10 +96,8 @@ def _ring_noise(patch: F32, gx: F64, gy: F64, in_ring: NDArray[np.bool_]) -> flo
     benchmark's frames: 5 spots fewer and 2 false more in 1000)."""
     if in_ring.sum() < 4:
         return 0.0
-    design = np.column_stack([np.ones(in_ring.sum()), gx[in_ring], gy[in_ring]])
-    values = patch[in_ring].astype(np.float64)
-    coef, *_ = np.linalg.lstsq(design, values, rcond=None)
-    return robust_std(values - design @ coef)
+    a, bx, by = _ring_plane(patch, gx, gy, in_ring)
+    return robust_std(patch[in_ring] - (a + bx * gx[in_ring] + by * gy[in_ring]))
 
 
 def shape_and_contrast(
@@ -131,3 +136,38 @@ def shape_and_contrast(
                      f"{max_annulus_ratio:g})")
     return Blob(radius, roundness, contrast, snr, support)
 
+
+
+def local_shape(resp: F32, row: int, col: int, radius_px: float) -> Blob | None:
+    """Shape and contrast of the blob at (row, col) against its own surroundings, for a spot of
+    about ``radius_px`` (the half-max radius of the image's other spots); None when its
+    half-maximum region reaches that ring, or it stands above none of it.
+
+    :func:`shape_and_contrast` measures a blob against the median of a ring twice the largest
+    spot out; a spot on a bright patch (a lit slope, green water near full scale) then has a
+    half-maximum region that runs into the patch and an SNR taken against texture far away.
+    Here the background is the plane fitted on the ring 2r + 2 to 2r + 5 px out, and the noise
+    its residual's robust std: the patch is the spot's background, as it is the eye's.
+    """
+    big = int(math.ceil(2.0 * radius_px + 6.0))
+    win = window(resp.shape, row, col, big)
+    patch = resp[win]
+    gx, gy = grid(win)
+    rr = np.hypot(gx - (col + 0.5), gy - (row + 0.5))
+    in_ring = (rr >= 2.0 * radius_px + 2.0) & (rr <= 2.0 * radius_px + 5.0)
+    if in_ring.sum() < 8:
+        return None
+    a, bx, by = _ring_plane(patch, gx, gy, in_ring)
+    excess = (patch - (a + bx * gx + by * gy)).astype(np.float32)
+    r0, c0 = row - win[0].start, col - win[1].start
+    contrast = float(excess[max(0, r0 - 1):r0 + 2, max(0, c0 - 1):c0 + 2].max())
+    if contrast <= 0:
+        return None
+    inside = rr < 2.0 * radius_px + 2.0
+    region, _ = _half_max_region(np.where(inside, excess, -np.inf).astype(np.float32), r0, c0,
+                                 0.5 * contrast, (False,) * 4)
+    if (ndimage.binary_dilation(region) & ~inside).any():
+        return None  # the half-maximum region reaches the ring: larger than a spot here
+    noise = max(robust_std(excess[in_ring]), 0.5 / 255.0)
+    return Blob(math.sqrt(region.sum() / math.pi), _roundness(region), contrast, contrast / noise,
+                max(4.0, 2.0 * radius_px + 2.0))
