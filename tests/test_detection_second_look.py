@@ -4,14 +4,17 @@ where its light has the laser's colour and its range agrees with the other laser
 from __future__ import annotations
 
 import math
+import tomllib
 
 import numpy as np
 import pytest
 
+from sfm_laserscale.commands.detect import parse_camera
 from sfm_laserscale.detection import DetectionOptions, detect_spots
 from sfm_laserscale.model import Camera
 from sfm_laserscale.rig import Rig, rig_from_dict
 from sfm_laserscale.synthetic.spots import paint_spot, to_uint8
+from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
 
 CAMERA = Camera(1, "PINHOLE", 1024, 768, np.array([900.0, 900.0, 512.0, 384.0]))
 WATER = (0.06, 0.30, 0.34)  # linear blue-green scene
@@ -104,3 +107,23 @@ def test_a_candidate_weaker_than_the_clutter_term_wants_is_taken_at_the_other_sp
         assert dict(l2.evidence)["clutter"] == 1.0 and got["L2"].score >= 0.25
     else:
         assert "L2" in res.missing
+
+
+def test_a_spot_below_one_clutter_level_is_taken_on_a_second_look() -> None:
+    """Physical frame (green water, seed 0 frame 4): L1's spot stands 0.94 clutter levels above
+    the scene. It is measured for the second look from 0.7 clutter levels (the default) and
+    taken at the other spots' range; from 1.0 (the former default) it is not even measured."""
+    ci = list(CONDITIONS).index("green_water")
+    frame = render_frame("green_water", 1920, 1080, np.random.default_rng([0, ci, 0, 4]))
+    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
+    truth = frame.truth["L1"]
+    assert truth is not None
+    assert DetectionOptions().second_look_clutter_ratio == 0.7
+    res = detect_spots(frame.image_rgb, camera, rig)
+    got = {s.laser: s for s in res.spots}
+    assert "L1" in got and math.dist((got["L1"].x, got["L1"].y), truth) < 1.5
+    taken = next(c for c in res.candidates if c.laser == "L1")
+    assert "below the clutter gate" in taken.reason and 0.7 <= taken.clutter_ratio < 1.0
+    before = detect_spots(frame.image_rgb, camera, rig,
+                          DetectionOptions(second_look_clutter_ratio=1.0))
+    assert "L1" not in {s.laser for s in before.spots}

@@ -100,7 +100,7 @@ class DetectionOptions:
     min_snr: float = 5.0
     max_annulus_ratio: float = 0.5
     min_clutter_ratio: float = 1.5
-    second_look_clutter_ratio: float = 1.0
+    second_look_clutter_ratio: float = 0.7
     saturation_level: float = 250.0 / 255.0
     max_candidates: int = 100
     input_gamma: float = 2.2
