@@ -49,16 +49,18 @@ from sfm_laserscale.detection.score import (
     colour_around,
     contrast_term,
 )
-from sfm_laserscale.detection.shape import Blob, local_shape, shape_and_contrast
+from sfm_laserscale.detection.shape import (
+    Blob,
+    expected_support_px,
+    local_shape,
+    shape_and_contrast,
+)
 
 F32 = NDArray[np.float32]
 #: a clipped core whose colour term is below this reads whitened (:mod:`.joint`): demosaicing,
 #: 4:2:0 chroma and the sensor's spectral crosstalk whiten a bright core and its rim, whatever
 #: its size
 WHITENED_MAX_COLOUR = 0.5
-#: a maximum refined at the other spots' radius r takes the support radius max(MIN_SUPPORT_PX,
-#: 2 r + 2) px (:func:`.shape.shape_and_contrast` measures a spot's as at least 4 px and 2 r)
-MIN_SUPPORT_PX = 4.0
 #: maxima below the clutter gate measured for the second look, per response
 SECOND_LOOK_MAX = 12
 WEAKER_THAN_SCENE = "no stronger than the scene's own blobs"
@@ -233,7 +235,7 @@ def _refined(planes: Planes, m: Measure, options: DetectionOptions,
     fails: no finite result, or a centre beyond max(2, radius) px of the maximum.
 
     A maximum on bright surroundings (a lit patch, green water near full scale) can measure a
-    half-maximum region that runs into them (8 px for a 1.7 px clipped core), and a centroid
+    half-maximum region that runs into them (8.5 px for a 3 × 2 px clipped core), and a centroid
     window that wide wanders off the spot. Where the radius of the image's other spots is known
     (``spot_radius_px``, a search near a predicted point) and smaller, such a maximum is refined
     again at that radius, and takes it: the spots of one scaler on one floor are footprints of
@@ -248,7 +250,7 @@ def _refined(planes: Planes, m: Measure, options: DetectionOptions,
     refined = attempt(m.radius_px, m.support_px)
     if refined is not None or spot_radius_px is None or spot_radius_px >= m.radius_px:
         return refined
-    support = max(MIN_SUPPORT_PX, 2.0 * spot_radius_px + 2.0)
+    support = expected_support_px(spot_radius_px)
     refined = attempt(spot_radius_px, support)
     if refined is not None:
         m.radius_px, m.support_px = spot_radius_px, support

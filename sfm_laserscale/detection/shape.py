@@ -138,6 +138,13 @@ def shape_and_contrast(
 
 
 
+def expected_support_px(radius_px: float) -> float:
+    """Support radius (px) of a spot of half-max radius ``radius_px`` taken from the image's
+    other spots: 2 r + 2, at least 4 px (:func:`shape_and_contrast` measures a spot's as at
+    least 4 px and 2 r)."""
+    return max(4.0, 2.0 * radius_px + 2.0)
+
+
 def local_shape(resp: F32, row: int, col: int, radius_px: float) -> Blob | None:
     """Shape and contrast of the blob at (row, col) against its own surroundings, for a spot of
     about ``radius_px`` (the half-max radius of the image's other spots); None when its
@@ -170,4 +177,4 @@ def local_shape(resp: F32, row: int, col: int, radius_px: float) -> Blob | None:
         return None  # the half-maximum region reaches the ring: larger than a spot here
     noise = max(robust_std(excess[in_ring]), 0.5 / 255.0)
     return Blob(math.sqrt(region.sum() / math.pi), _roundness(region), contrast, contrast / noise,
-                max(4.0, 2.0 * radius_px + 2.0))
+                expected_support_px(radius_px))
