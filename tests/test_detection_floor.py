@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from sfm_laserscale.commands.detect import parse_camera
-from sfm_laserscale.detection import DetectionOptions, detect_spots
+from sfm_laserscale.detection import DetectionOptions, DetectionResult, detect_spots
 from sfm_laserscale.detection.beams import search_region
+from sfm_laserscale.detection.candidates import Measure
 from sfm_laserscale.detection.floor import (
     PLACE,
     beam_range_on_plane,
@@ -157,43 +158,11 @@ def test_the_floor_is_searched_again_with_the_spots_the_second_look_took() -> No
     assert {s.laser for s in off.spots} == {"L1", "L2"} and PLACE not in off.missing["L4"]
 
 
-@pytest.mark.parametrize(("index", "name"), [(15, "L4"), (17, "L3")])
-def test_a_spot_on_bright_water_is_refined_at_the_other_spots_radius(index: int,
-                                                                      name: str) -> None:
-    """Green water near full scale (physical generator): the spot's half-maximum region runs
-    into its bright surroundings (a radius of 8.5 px for frame 15's 3 × 2 px clipped core), and
-    a centroid window that wide wanders off it. Near the floor's prediction it is refined again
-    at the found spots' median radius, and taken (both were missed before)."""
-    ci = list(CONDITIONS).index("green_water")
-    frame = render_frame("green_water", 1920, 1080, np.random.default_rng([0, ci, 0, index]))
-    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
-    truth = frame.truth[name]
-    assert truth is not None
-    res = detect_spots(frame.image_rgb, camera, rig)
-    got = {s.laser: s for s in res.spots}
-    assert name in got, res.missing.get(name)
-    assert math.dist((got[name].x, got[name].y), truth) < 1.5
-    assert PLACE in next(c.reason for c in res.candidates if c.laser == name)
-    others = float(np.median([c.radius_px for c in res.candidates
-                              if c.laser is not None and c.laser != name]))
-    guided = GuidedOptions(radius_px=default_floor_radius_px(camera.width, camera.height))
-    alone = search_near(frame.image_rgb, camera, rig, name, truth, DetectionOptions(), guided)
-    assert alone[0] is None and "sub-pixel refinement failed" in alone[2]
-    helped, score, _ = search_near(frame.image_rgb, camera, rig, name, truth,
-                                   DetectionOptions(), guided, PLACE, others)
-    assert helped is not None and score >= guided.min_score
-    assert helped.radius_px == others and math.dist((helped.x, helped.y), truth) < 1.5
-
-
-@pytest.mark.parametrize(("seed", "condition", "index", "name", "failed"), [
-    (0, "turbid_brown", 10, "L4", "not compact"),  # a clipped core on a lit patch
-    (1, "green_all", 4, "L2", "weak"),
-])
-def test_a_spot_near_the_floors_prediction_is_measured_against_its_own_surroundings(
-        seed: int, condition: str, index: int, name: str, failed: str) -> None:
-    """Physical frames: measured against the far background, the maximum at the spot fails a
-    shape test; near the floor's prediction, with the other spots' radius to expect, it is
-    measured against its own surroundings and taken (both were missed before)."""
+def _searched_with_the_other_spots_radius(seed: int, condition: str, index: int, name: str,
+                                          failed: str) -> tuple[DetectionResult, Measure, float]:
+    """A physical frame's ``name`` spot: found by ``detect_spots`` within 1.5 px; searched near
+    its truth without the other spots' radius, the maximum there fails with ``failed``; with
+    it, the candidate taken (returned with its evidence and that radius)."""
     ci = list(CONDITIONS).index(condition)
     frame = render_frame(condition, 1920, 1080, np.random.default_rng([seed, ci, 0, index]))
     camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
@@ -210,5 +179,32 @@ def test_a_spot_near_the_floors_prediction_is_measured_against_its_own_surroundi
     assert alone[0] is None and failed in alone[2]
     helped, score, _ = search_near(frame.image_rgb, camera, rig, name, truth,
                                    DetectionOptions(), guided, PLACE, others)
-    assert helped is not None and score >= guided.min_score and helped.snr >= 5.0
+    assert helped is not None and score >= guided.min_score
     assert math.dist((helped.x, helped.y), truth) < 1.5
+    return res, helped, others
+
+
+@pytest.mark.parametrize(("index", "name"), [(15, "L4"), (17, "L3")])
+def test_a_spot_on_bright_water_is_refined_at_the_other_spots_radius(index: int,
+                                                                      name: str) -> None:
+    """Green water near full scale (physical generator): the spot's half-maximum region runs
+    into its bright surroundings (a radius of 8.5 px for frame 15's 3 × 2 px clipped core), and
+    a centroid window that wide wanders off it. Near the floor's prediction it is refined again
+    at the found spots' median radius, and taken (both were missed before)."""
+    res, helped, others = _searched_with_the_other_spots_radius(
+        0, "green_water", index, name, "sub-pixel refinement failed")
+    assert PLACE in next(c.reason for c in res.candidates if c.laser == name)
+    assert helped.radius_px == others
+
+
+@pytest.mark.parametrize(("seed", "condition", "index", "name", "failed"), [
+    (0, "turbid_brown", 10, "L4", "not compact"),  # a clipped core on a lit patch
+    (1, "green_all", 4, "L2", "weak"),
+])
+def test_a_spot_near_the_floors_prediction_is_measured_against_its_own_surroundings(
+        seed: int, condition: str, index: int, name: str, failed: str) -> None:
+    """Physical frames: measured against the far background, the maximum at the spot fails a
+    shape test; near the floor's prediction, with the other spots' radius to expect, it is
+    measured against its own surroundings and taken (both were missed before)."""
+    _, helped, _ = _searched_with_the_other_spots_radius(seed, condition, index, name, failed)
+    assert helped.snr >= 5.0
