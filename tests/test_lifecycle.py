@@ -219,7 +219,13 @@ def test_pool_workers_killed_when_the_run_is_interrupted() -> None:
         time.sleep(5)
     assert time.monotonic() - t0 < 30
     assert _wait_gone(sorted(set(pids))) == []
+    # the executor's manager thread fails the killed workers' futures (BrokenProcessPool) a
+    # moment after they die: every future ends, cancelled or failed, without waiting for a task
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline and not all(f.cancelled() or f.done() for f in futures):
+        time.sleep(0.05)
     assert all(f.cancelled() or f.done() for f in futures)
+    assert all(f.cancelled() or f.exception() is not None for f in futures)
 
 
 _POOL_PARENT = r"""
