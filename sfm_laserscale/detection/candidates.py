@@ -83,6 +83,7 @@ class Measure:
     bright: bool = False  # refined on the brightness signal (its laser channel clips)
     whitened: bool = False  # a small clipped core whose colour read against it
     second_look: bool = False  # below the clutter gate, measured for the second look
+    beside: bool = False  # refined with an overlapping spot's modelled light removed
     sigma_px: float = 1.0
     colour: ColourEvidence = field(default_factory=lambda: ColourEvidence(0.5))
     terms: dict[str, float] = field(default_factory=dict)  # evidence without colour and beam
@@ -377,3 +378,4 @@ def separate_overlapping(planes: Planes, valid: list[Measure], options: Detectio
             if math.isfinite(sig) and math.hypot(x - m.x, y - m.y) <= max(2.0, m.radius_px):
                 m.x, m.y = x, y
                 m.sigma_px = sig
+                m.beside = True

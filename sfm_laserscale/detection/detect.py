@@ -4,7 +4,8 @@
 responses (:mod:`.response`), candidates measured, refined and scored (:mod:`.candidates`,
 :mod:`.shape`, :mod:`.refine`, :mod:`.score`), the assignment to lasers (:mod:`.assign`), the
 search where the plane through the spots found meets a missing laser's beam (:mod:`.floor`),
-a lone spot's stricter test (:func:`_drop_alone`) and the reasons for lasers without a spot
+a lone spot's stricter test (:func:`_drop_alone`), the chosen spots' centres from both of a
+green laser's signals (:mod:`.centre`) and the reasons for lasers without a spot
 (:mod:`.explain`). Every candidate is returned with what became of it.
 """
 
@@ -23,6 +24,7 @@ from sfm_laserscale.detection.assign import (
 )
 from sfm_laserscale.detection.beams import SearchRegion, search_region
 from sfm_laserscale.detection.candidates import Measure, candidates_for_colour
+from sfm_laserscale.detection.centre import centre_on_both
 from sfm_laserscale.detection.explain import explain_missing
 from sfm_laserscale.detection.floor import PLACE, floor_search
 from sfm_laserscale.detection.inputs import check_image, colours_needed, group_rgb
@@ -141,6 +143,8 @@ def detect_spots(
         if name not in chosen:
             missing[name] = f"{missing.get(name, 'no spot')}; {PLACE}: {why}"
     taken = {name: valid[j] for name, j in chosen.items()}
+    for spot in taken.values():
+        centre_on_both(image_rgb, spot, group_rgb(rig, spot.color), options, region.max_radius)
     spots = tuple(
         Spot(laser=name, x=m.x, y=m.y, score=float(np.clip(m.score, 0, 1)),
              sigma_px=m.sigma_px, source="detected")

@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 
 from sfm_laserscale.detection.beams import SearchRegion, default_max_spot_radius_px
 from sfm_laserscale.detection.candidates import Measure, candidates_for_colour
+from sfm_laserscale.detection.centre import centre_on_both
 from sfm_laserscale.detection.inputs import check_image, group_rgb
 from sfm_laserscale.detection.joint import CLIPPED_COLOUR
 from sfm_laserscale.detection.options import DetectionOptions
@@ -81,6 +82,11 @@ def _window(camera: Camera, xy: tuple[float, float], reach: int) -> tuple[int, i
     col, row = int(math.floor(xy[0])), int(math.floor(xy[1]))
     return (max(0, col - reach), max(0, row - reach), min(camera.width, col + reach + 1),
             min(camera.height, row + reach + 1))
+
+
+def _max_radius(camera: Camera, options: DetectionOptions) -> float:
+    """The largest half-maximum radius (px) of a spot in this camera's images."""
+    return options.max_spot_radius_px or default_max_spot_radius_px(camera.width, camera.height)
 
 
 def _region(camera: Camera, xy: tuple[float, float], radius: float, max_radius: float,
@@ -139,8 +145,7 @@ def search_near(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, laser: s
     ``spot_radius_px`` the half-max radius of the image's other spots when known (a maximum
     whose refinement fails at its own radius is refined again at it, :mod:`.candidates`)."""
     las = rig.laser(laser)
-    max_radius = options.max_spot_radius_px or default_max_spot_radius_px(
-        camera.width, camera.height)
+    max_radius = _max_radius(camera, options)
     if not (0 <= xy[0] <= camera.width and 0 <= xy[1] <= camera.height):
         return None, 0.0, f"({xy[0]:.1f}, {xy[1]:.1f}), {place}, is outside the image"
     region = _region(camera, xy, guided.radius_px, max_radius, options, spot_radius_px)
@@ -168,6 +173,8 @@ def detect_near_one(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, lase
     best, score, why = search_near(image_rgb, camera, rig, laser, xy, options, guided)
     if best is None:
         return None, why
+    centre_on_both(image_rgb, best, group_rgb(rig, best.color), options,
+                   _max_radius(camera, options))
     return Spot(laser=laser, x=best.x, y=best.y, score=float(min(score, 1.0)),
                 sigma_px=best.sigma_px, source="guided"), ""
 

@@ -15,12 +15,16 @@ class SigmaModel:
     σ² = σ_noise² + (window_gain · shift)² + (asymmetry_gain · √A · σ_w)² + floor_px², with
     ``shift`` (px) how far the centroid's fixed point moves when its window widens
     (:data:`~sfm_laserscale.detection.refine.WIDE_WINDOW_RATIO`), A the spot's
-    :func:`~sfm_laserscale.detection.refine.asymmetry` and σ_w its window (px).
+    :func:`~sfm_laserscale.detection.refine.asymmetry` and σ_w its window (px). A spot
+    centred on two signals (:mod:`~sfm_laserscale.detection.centre`) adds
+    (disagreement_gain · d)², d (px) the distance between their centres: 1/√8 is the σ per
+    axis of the mean of two estimates with independent errors of equal σ, given d.
     """
 
     floor_px: float = 0.1
     window_gain: float = 0.5
     asymmetry_gain: float = 0.12
+    disagreement_gain: float = 0.354
 
 
 @dataclass(frozen=True)
@@ -87,9 +91,13 @@ class DetectionOptions:
     - ``refine``: "centroid" (Gaussian-windowed centroid iterated to its fixed point, the
       default) or "gaussian" (2D Gaussian fit to the unclipped pixels). Spots cut by the image
       border always use the fit.
-    - ``sigma_floor_px``, ``sigma_window_gain``, ``sigma_asymmetry_gain``: the localisation
-      sigma's terms beyond noise (:class:`SigmaModel`): a floor (demosaicing, JPEG chroma), and
-      light that is not point-symmetric about the centre.
+    - ``two_signal_centre``: a luma-dominant (green) laser's chosen spot is centred on both of
+      its signals, the texture-free light and luma, and takes their mean when they agree
+      (:mod:`.centre`).
+    - ``sigma_floor_px``, ``sigma_window_gain``, ``sigma_asymmetry_gain``,
+      ``sigma_disagreement_gain``: the localisation sigma's terms beyond noise
+      (:class:`SigmaModel`): a floor (demosaicing, JPEG chroma), light that is not
+      point-symmetric about the centre, and the distance between two signals' centres.
     """
 
     min_range_m: float = 0.5
@@ -118,11 +126,14 @@ class DetectionOptions:
     sigma_floor_px: float = 0.1
     sigma_window_gain: float = 0.5
     sigma_asymmetry_gain: float = 0.12
+    two_signal_centre: bool = True
+    sigma_disagreement_gain: float = 0.354
 
     @property
     def sigma_model(self) -> SigmaModel:
         """The localisation sigma's terms beyond noise."""
-        return SigmaModel(self.sigma_floor_px, self.sigma_window_gain, self.sigma_asymmetry_gain)
+        return SigmaModel(self.sigma_floor_px, self.sigma_window_gain, self.sigma_asymmetry_gain,
+                          self.sigma_disagreement_gain)
 
     def __post_init__(self) -> None:
         if not 0.0 < self.min_range_m < self.max_range_m:
@@ -136,7 +147,8 @@ class DetectionOptions:
         if self.refine not in ("centroid", "gaussian"):
             raise InputError(f"refine must be 'centroid' or 'gaussian', got {self.refine!r}")
         for name in ("min_clutter_ratio", "second_look_clutter_ratio", "alone_min_score",
-                     "sigma_floor_px", "sigma_window_gain", "sigma_asymmetry_gain"):
+                     "sigma_floor_px", "sigma_window_gain", "sigma_asymmetry_gain",
+                     "sigma_disagreement_gain"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("snr_half", "clutter_half", "colour_tau"):

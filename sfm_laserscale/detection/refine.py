@@ -151,6 +151,10 @@ LUMA_SNR_RATIO = 0.5
 CLIPPED_CUT = 0.15
 
 
+#: the signals a spot can be refined on: chosen by SNR, the texture-free light, luma
+SIGNALS = ("auto", "light", "luma")
+
+
 def _snr(sig: F64, ring: NDArray[np.bool_], inner: NDArray[np.bool_]) -> float:
     """Peak of a signal inside a spot over its robust noise on the ring."""
     if not inner.any():
@@ -207,8 +211,8 @@ def _noise_gain(w: F64) -> float:
 
 
 def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
-               neighbours: tuple[NeighbourModel, ...] = (), allow_luma: bool = True
-               ) -> SpotPatch | None:
+               neighbours: tuple[NeighbourModel, ...] = (), allow_luma: bool = True,
+               signal: str = "auto") -> SpotPatch | None:
     """The spot signal around a guess (crop COLMAP px); None with too little background.
 
     ``neighbours``: overlapping spots whose modelled light is removed first (so neither the
@@ -216,7 +220,11 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
     refined beside them use the texture-free signal only (one unit for all). Otherwise a
     luma-dominant laser's spot uses luma when its SNR there is at least LUMA_SNR_RATIO of the
     texture-free signal's (texture strong in luma, e.g. green water, keeps the latter).
+    ``signal`` (one of SIGNALS): "auto" chooses so; "light" and "luma" force that signal (a
+    luma-dominant laser's spot without neighbours; any other keeps the texture-free signal).
     """
+    if signal not in SIGNALS:
+        raise ValueError(f"signal must be one of {SIGNALS}, got {signal!r}")
     x0, y0 = guess.x, guess.y
     radius = int(math.ceil(support_px)) + 4
     win = window(planes.laser.shape, int(math.floor(y0)), int(math.floor(x0)), radius)
@@ -233,10 +241,10 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
     for nb in neighbours:
         value = value - nb.at(gx, gy)
     sig = _plane_residual(value, gx, gy, ring)
-    if allow_luma and not neighbours and luma_dominant(planes.laser_rgb):
+    if allow_luma and not neighbours and luma_dominant(planes.laser_rgb) and signal != "light":
         sig_l = _plane_residual(rgb @ LUMA, gx, gy, ring)
-        if (_snr(sig_l, ring, inner & ~clipped)
-                >= LUMA_SNR_RATIO * _snr(sig, ring, inner & ~undetermined)):
+        if signal == "luma" or (_snr(sig_l, ring, inner & ~clipped)
+                                >= LUMA_SNR_RATIO * _snr(sig, ring, inner & ~undetermined)):
             sig, undetermined = sig_l, clipped
     top = inner & undetermined
     if top.any():
@@ -416,13 +424,13 @@ def structure_sigma(patch: SpotPatch, x: float, y: float, sigma_w: float,
 
 def refine_spot(planes: Planes, guess: SpotGuess, refine: str,
                 neighbours: tuple[NeighbourModel, ...] = (),
-                sigma_model: SigmaModel = SigmaModel()  # noqa: B008 (frozen dataclass)
-                ) -> tuple[float, float, float]:
+                sigma_model: SigmaModel = SigmaModel(),  # noqa: B008 (frozen dataclass)
+                signal: str = "auto") -> tuple[float, float, float]:
     """Sub-pixel centre and localisation sigma (:class:`SigmaModel`) of one candidate (crop
     COLMAP px); NaN if impossible. ``refine``: "centroid" or "gaussian" (spots cut by the
-    border: always)."""
+    border: always); ``signal``: see :func:`spot_patch`."""
     sigma_w = max(1.0, guess.radius_px)
-    patch = spot_patch(planes, guess, guess.patch_support, neighbours)
+    patch = spot_patch(planes, guess, guess.patch_support, neighbours, signal=signal)
     if patch is None:
         return math.nan, math.nan, math.nan
     if refine == "gaussian" or patch.cut:

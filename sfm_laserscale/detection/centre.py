@@ -1,0 +1,88 @@
+"""The reported centre of a green (luma-dominant) laser's spot, from both of its signals.
+
+A luma-dominant laser's spot can be refined on two signals (:mod:`.refine`): its light freed of
+the scene's texture by colour, and luma. Each fails in its own way. The texture-free light
+carries the 2 × 2 blocks of 4:2:0 chroma, and on a clipped core it is read from the channels
+that did not clip, whose share of a green laser's light is the sensor's crosstalk alone, so a
+few pixels of the core set its centre. Luma is kept at full resolution and sees a clipped core
+whole, but holds the scene's texture. The candidate search picks one of them by SNR; once a
+laser's spot is chosen, :func:`centre_on_both` refines it on both:
+
+- when the two centres agree (within TWO_SIGNALS_AGREE of their σ combined and
+  TWO_SIGNALS_MAX_APART_PX), the spot takes their inverse-variance weighted mean, with the
+  smaller of the two σ;
+- when they do not, one of them is off, and which one cannot be told from the two: the spot
+  keeps the centre the search chose.
+
+Either way its σ gains (disagreement_gain · d)², d the distance between the two centres
+(:class:`~sfm_laserscale.detection.options.SigmaModel`). Measured in docs/DETECTION.md
+("Two signals").
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sfm_laserscale.detection.candidates import Measure
+from sfm_laserscale.detection.options import DetectionOptions, SigmaModel
+from sfm_laserscale.detection.refine import SpotGuess, luma_dominant, refine_spot
+from sfm_laserscale.detection.response import Planes, crop_channels, make_planes
+
+#: two centres of one spot agree when they lie within this many of their σ combined …
+TWO_SIGNALS_AGREE = 4.0
+#: … and within this many pixels (farther apart, one is off by half of it or more, whatever
+#: the σ say)
+TWO_SIGNALS_MAX_APART_PX = 1.0
+#: pixels of background around a spot's support in the crop it is centred in
+MARGIN_PX = 12
+
+Centre = tuple[float, float, float]  # (x, y, σ), px
+
+
+def two_signal_centre(planes: Planes, guess: SpotGuess, refine: str, sigma_model: SigmaModel,
+                      chosen: Centre) -> Centre:
+    """A luma-dominant laser's spot centred on its texture-free light and on luma (crop COLMAP
+    px): their weighted mean when they agree, else ``chosen``; σ with the disagreement term.
+
+    ``chosen`` (the centre the candidate search refined) is returned unchanged when either
+    signal cannot be refined or moves more than max(2, radius) px from it.
+    """
+    reach = max(2.0, guess.radius_px)
+    both = [refine_spot(planes, guess, refine, sigma_model=sigma_model, signal=s)
+            for s in ("light", "luma")]
+    if not all(math.isfinite(c[2]) and math.hypot(c[0] - chosen[0], c[1] - chosen[1]) <= reach
+               for c in both):
+        return chosen
+    (xa, ya, sa), (xb, yb, sb) = both
+    apart = math.hypot(xa - xb, ya - yb)
+    spread = sigma_model.disagreement_gain * apart
+    if apart > min(TWO_SIGNALS_AGREE * math.hypot(sa, sb), TWO_SIGNALS_MAX_APART_PX):
+        return chosen[0], chosen[1], math.hypot(chosen[2], spread)
+    wa, wb = 1.0 / sa**2, 1.0 / sb**2
+    return ((wa * xa + wb * xb) / (wa + wb), (wa * ya + wb * yb) / (wa + wb),
+            math.hypot(min(sa, sb), spread))
+
+
+def centre_on_both(image_rgb: NDArray[np.uint8], m: Measure,
+                   laser_rgb: tuple[float, float, float],
+                   options: DetectionOptions, max_radius: float) -> None:
+    """In place: a chosen spot's centre and σ (image COLMAP px) from :func:`two_signal_centre`,
+    for a luma-dominant laser (``laser_rgb``, its expected linear colour) when
+    ``options.two_signal_centre``; other spots, and spots refined beside an overlapping one
+    (their neighbour's light removed), keep theirs."""
+    if not (options.two_signal_centre and luma_dominant(np.asarray(laser_rgb))) or m.beside:
+        return
+    h, w = image_rgb.shape[:2]
+    reach = int(math.ceil(m.guess().patch_support)) + MARGIN_PX
+    col, row = int(math.floor(m.x)), int(math.floor(m.y))
+    x0, y0 = max(0, col - reach), max(0, row - reach)
+    roi = (x0, y0, min(w, col + reach + 1), min(h, row + reach + 1))
+    planes = make_planes(crop_channels(image_rgb, roi, options.input_gamma), m.color, options,
+                         max_radius, laser_rgb)
+    guess = SpotGuess(m.x - x0, m.y - y0, m.radius_px, m.support_px, m.bright)
+    x, y, sigma = two_signal_centre(planes, guess, options.refine, options.sigma_model,
+                                    (m.x - x0, m.y - y0, m.sigma_px))
+    m.x, m.y, m.sigma_px = x + x0, y + y0, sigma

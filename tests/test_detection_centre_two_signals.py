@@ -1,0 +1,172 @@
+"""A green laser's chosen spot centred on both of its signals (texture-free light and luma).
+
+Closed form on painted patches (the two centres agree: their weighted mean; a grey blob beside
+the spot pulls luma's centre: the chosen centre is kept and the σ holds the disagreement), and
+physical frames of the independent generator (clipped cores whose texture-free light was read
+from the crosstalk of the unclipped channels, 0.7 px off).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from sfm_laserscale.commands.detect import parse_camera
+from sfm_laserscale.detection import DetectionOptions, centre, detect_spots
+from sfm_laserscale.detection.candidates import Measure
+from sfm_laserscale.detection.centre import TWO_SIGNALS_AGREE, centre_on_both, two_signal_centre
+from sfm_laserscale.detection.options import SigmaModel
+from sfm_laserscale.detection.refine import SpotGuess, refine_spot, spot_patch
+from sfm_laserscale.detection.response import Planes, crop_channels, make_planes
+from sfm_laserscale.errors import InputError
+from sfm_laserscale.laser_color import DEFAULT_RGB
+from sfm_laserscale.rig import rig_from_dict
+from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
+
+SIZE = 41
+TRUE_XY = (20.3, 19.8)  # COLMAP px
+GREEN = DEFAULT_RGB["green"]
+
+
+def _gaussian(xy: tuple[float, float], sigma: float) -> np.ndarray:
+    """(SIZE, SIZE) unit-peak Gaussian at a COLMAP point (pixel centres at index + 0.5)."""
+    c = np.arange(SIZE) + 0.5
+    gx, gy = np.meshgrid(c, c)
+    return np.exp(-0.5 * ((gx - xy[0]) ** 2 + (gy - xy[1]) ** 2) / sigma**2)
+
+
+def _image(grey_blob: float, seed: int = 0) -> np.ndarray:
+    """A green spot (σ 1.2 px, 0.5 of white) on a dull grey-green floor with mild noise, and
+    optionally a grey blob of that luma 2.5 px to its right; encoded with gamma 2.2."""
+    rng = np.random.default_rng(seed)
+    floor = np.array([0.10, 0.14, 0.10])
+    lin = np.broadcast_to(floor, (SIZE, SIZE, 3)).copy()
+    lin += 0.5 * _gaussian(TRUE_XY, 1.2)[..., None] * np.asarray(GREEN)
+    blob = _gaussian((TRUE_XY[0] + 2.5, TRUE_XY[1]), 1.2)[..., None]
+    lin += grey_blob * blob * floor / floor.max()
+    lin += rng.normal(0.0, 0.002, lin.shape)
+    return np.round(255.0 * np.clip(lin, 0.0, 1.0) ** (1 / 2.2)).astype(np.uint8)
+
+
+def _planes(image: np.ndarray) -> Planes:
+    options = DetectionOptions()
+    return make_planes(crop_channels(image, (0, 0, SIZE, SIZE), options.input_gamma), "green",
+                       options, 10.0, GREEN)
+
+
+GUESS = SpotGuess(20.5, 19.5, 1.4, 4.0)
+
+
+def test_agreeing_signals_give_their_weighted_mean() -> None:
+    planes = _planes(_image(0.0))
+    light = refine_spot(planes, GUESS, "centroid", signal="light")
+    luma = refine_spot(planes, GUESS, "centroid", signal="luma")
+    x, y, sigma = two_signal_centre(planes, GUESS, "centroid", SigmaModel(), light)
+    assert math.dist((x, y), TRUE_XY) < 0.05
+    # the weighted mean lies between the two centres, its σ is the smaller one's with the
+    # disagreement term
+    assert min(light[0], luma[0]) - 1e-9 <= x <= max(light[0], luma[0]) + 1e-9
+    d = math.dist(light[:2], luma[:2])
+    assert sigma == pytest.approx(math.hypot(min(light[2], luma[2]), 0.354 * d))
+
+
+def test_disagreeing_signals_keep_the_chosen_centre_and_widen_its_sigma() -> None:
+    planes = _planes(_image(0.4))  # a grey blob beside the spot: luma sees it, the light not
+    light = refine_spot(planes, GUESS, "centroid", signal="light")
+    luma = refine_spot(planes, GUESS, "centroid", signal="luma")
+    d = math.dist(light[:2], luma[:2])
+    assert math.dist(light[:2], TRUE_XY) < 0.1 and luma[0] - TRUE_XY[0] > 0.3
+    assert d > TWO_SIGNALS_AGREE * math.hypot(light[2], luma[2])
+    x, y, sigma = two_signal_centre(planes, GUESS, "centroid", SigmaModel(), light)
+    assert (x, y) == light[:2]
+    assert sigma == pytest.approx(math.hypot(light[2], 0.354 * d))
+    assert sigma > 0.354 * 0.3
+
+
+CHOSEN = (20.0, 20.0, 0.2)
+
+
+@pytest.mark.parametrize(("light", "luma", "expected"), [
+    # agree: inverse-variance weighted mean, the smaller σ with the disagreement term
+    ((20.0, 20.0, 0.1), (20.3, 20.0, 0.2), (20.06, 20.0, math.hypot(0.1, 0.354 * 0.3))),
+    # 0.8 px apart, but within 4σ combined: agree
+    ((20.0, 20.0, 0.5), (20.8, 20.0, 0.5), (20.4, 20.0, math.hypot(0.5, 0.354 * 0.8))),
+    # 1.5 px apart, within 4σ combined but more than 1 px: the chosen centre is kept
+    ((20.0, 20.0, 0.5), (21.5, 20.0, 0.5), (20.0, 20.0, math.hypot(0.2, 0.354 * 1.5))),
+    # 0.6 px apart, beyond 4σ combined: the chosen centre is kept
+    ((20.0, 20.0, 0.1), (20.6, 20.0, 0.1), (20.0, 20.0, math.hypot(0.2, 0.354 * 0.6))),
+    # a signal that cannot be refined, or wanders beyond max(2, radius): nothing changes
+    ((20.0, 20.0, math.nan), (20.1, 20.0, 0.1), CHOSEN),
+    ((20.0, 20.0, 0.1), (22.5, 20.0, 0.1), CHOSEN),
+])
+def test_two_centres_are_combined_only_when_they_agree(
+        monkeypatch: pytest.MonkeyPatch, light: tuple[float, float, float],
+        luma: tuple[float, float, float], expected: tuple[float, float, float]) -> None:
+    results = {"light": light, "luma": luma}
+    monkeypatch.setattr(centre, "refine_spot",
+                        lambda *args, signal, **kw: results[signal])
+    got = centre.two_signal_centre(_planes(_image(0.0)), SpotGuess(20.0, 20.0, 1.5, 4.0),
+                                   "centroid", SigmaModel(), CHOSEN)
+    assert got == pytest.approx(expected, abs=1e-9)
+
+
+def test_red_spots_and_spots_beside_a_neighbour_keep_their_centre() -> None:
+    image = _image(0.0)
+    options = DetectionOptions()
+    for m, rgb in ((Measure(20.6, 19.6, "red", "colour", 1.0, radius_px=1.4, support_px=4.0,
+                            sigma_px=0.2), DEFAULT_RGB["red"]),
+                   (Measure(20.6, 19.6, "green", "colour", 1.0, radius_px=1.4, support_px=4.0,
+                            sigma_px=0.2, beside=True), GREEN)):
+        centre_on_both(image, m, rgb, options, 10.0)
+        assert (m.x, m.y, m.sigma_px) == (20.6, 19.6, 0.2)
+    m = Measure(20.6, 19.6, "green", "colour", 1.0, radius_px=1.4, support_px=4.0, sigma_px=0.2)
+    centre_on_both(image, m, GREEN, replace(options, two_signal_centre=False), 10.0)
+    assert (m.x, m.y, m.sigma_px) == (20.6, 19.6, 0.2)
+    centre_on_both(image, m, GREEN, options, 10.0)
+    assert math.dist((m.x, m.y), TRUE_XY) < 0.05
+
+
+def test_signal_and_gain_are_checked() -> None:
+    with pytest.raises(ValueError, match="signal"):
+        spot_patch(_planes(_image(0.0)), GUESS, 4.0, signal="red")
+    with pytest.raises(InputError, match="sigma_disagreement_gain"):
+        DetectionOptions(sigma_disagreement_gain=-0.1)
+
+
+def _detect(condition: str, index: int, two_signals: bool) -> tuple[dict, dict]:
+    ci = list(CONDITIONS).index(condition)
+    frame = render_frame(condition, 1920, 1080, np.random.default_rng([0, ci, 0, index]))
+    rig = rig_from_dict(tomllib.loads(frame.rig_toml))
+    res = detect_spots(frame.image_rgb, parse_camera(frame.camera_spec), rig,
+                       DetectionOptions(two_signal_centre=two_signals))
+    return {s.laser: s for s in res.spots}, frame.truth
+
+
+def test_clipped_cores_are_centred_on_luma_where_the_light_was_crosstalk() -> None:
+    """``clipped_cores`` frame 0: L1 and L2 (10x and 37x white) clip in green; their
+    texture-free light was read from red and blue, the crosstalk alone (measured 0.69 and
+    0.75 px off); luma sees the cores whole (0.20 and 0.15 px)."""
+    before, truth = _detect("clipped_cores", 0, two_signals=False)
+    after, _ = _detect("clipped_cores", 0, two_signals=True)
+    for name in ("L1", "L2"):
+        t = truth[name]
+        assert t is not None
+        assert math.dist((before[name].x, before[name].y), t) > 0.6
+        assert math.dist((after[name].x, after[name].y), t) < 0.3
+
+
+def test_a_disagreement_widens_the_sigma_of_the_centre_kept() -> None:
+    """``turbid_brown`` frame 17, L3: luma's centre lies on the texture beside the spot, the
+    chosen centre (0.41 px off, 2.8σ per axis before) is kept and its σ now holds its error."""
+    before, truth = _detect("turbid_brown", 17, two_signals=False)
+    after, _ = _detect("turbid_brown", 17, two_signals=True)
+    t = truth["L3"]
+    assert t is not None
+    assert (after["L3"].x, after["L3"].y) == (before["L3"].x, before["L3"].y)
+    err = max(abs(after["L3"].x - t[0]), abs(after["L3"].y - t[1]))
+    assert err > 1.96 * before["L3"].sigma_px
+    assert err < 1.96 * after["L3"].sigma_px
