@@ -91,14 +91,17 @@ CHOSEN = (20.0, 20.0, 0.2)
 
 
 @pytest.mark.parametrize(("light", "luma", "expected"), [
-    # agree: inverse-variance weighted mean, the smaller σ with the disagreement term
-    ((20.0, 20.0, 0.1), (20.3, 20.0, 0.2), (20.06, 20.0, math.hypot(0.1, 0.354 * 0.3))),
+    # agree: inverse-variance weighted mean (the light weighed with σ hypot(0.1, 0.2) px: 4:2:0
+    # chroma), the smaller σ with the disagreement term
+    ((20.0, 20.0, 0.1), (20.3, 20.0, 0.2), (20.0 + 0.3 * 25 / 45, 20.0,
+                                            math.hypot(0.1, 0.354 * 0.3))),
     # 0.8 px apart, but within 4σ combined: agree
-    ((20.0, 20.0, 0.5), (20.8, 20.0, 0.5), (20.4, 20.0, math.hypot(0.5, 0.354 * 0.8))),
+    ((20.0, 20.0, 0.5), (20.8, 20.0, 0.5), (20.0 + 0.8 * 4 / (4 + 1 / 0.29), 20.0,
+                                            math.hypot(0.5, 0.354 * 0.8))),
     # 1.5 px apart, within 4σ combined but more than 1 px: the chosen centre is kept
     ((20.0, 20.0, 0.5), (21.5, 20.0, 0.5), (20.0, 20.0, math.hypot(0.2, 0.354 * 1.5))),
-    # 0.6 px apart, beyond 4σ combined: the chosen centre is kept
-    ((20.0, 20.0, 0.1), (20.6, 20.0, 0.1), (20.0, 20.0, math.hypot(0.2, 0.354 * 0.6))),
+    # 0.95 px apart, beyond 4σ combined (0.85 px): the chosen centre is kept
+    ((20.0, 20.0, 0.05), (20.95, 20.0, 0.05), (20.0, 20.0, math.hypot(0.2, 0.354 * 0.95))),
     # a signal that cannot be refined, or wanders beyond max(2, radius): nothing changes
     ((20.0, 20.0, math.nan), (20.1, 20.0, 0.1), CHOSEN),
     ((20.0, 20.0, 0.1), (22.5, 20.0, 0.1), CHOSEN),
