@@ -91,8 +91,8 @@ CHOSEN = (20.0, 20.0, 0.2)
 
 
 @pytest.mark.parametrize(("light", "luma", "expected"), [
-    # agree: inverse-variance weighted mean (the light weighed with σ hypot(0.1, 0.2) px: 4:2:0
-    # chroma), the smaller σ with the disagreement term
+    # agree: inverse-variance weighted mean (the light weighed with σ hypot(0.1, 0.3 / 1.5) px:
+    # 4:2:0 chroma on a spot of radius 1.5 px), the smaller σ with the disagreement term
     ((20.0, 20.0, 0.1), (20.3, 20.0, 0.2), (20.0 + 0.3 * 25 / 45, 20.0,
                                             math.hypot(0.1, 0.354 * 0.3))),
     # 0.8 px apart, but within 4σ combined: agree

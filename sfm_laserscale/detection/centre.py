@@ -10,7 +10,8 @@ laser's spot is chosen, :func:`centre_on_both` refines it on both:
 
 - when the two centres agree (within TWO_SIGNALS_AGREE of their σ combined and
   TWO_SIGNALS_MAX_APART_PX), the spot takes their inverse-variance weighted mean, with the
-  smaller of the two σ (the texture-free light weighed with LIGHT_CHROMA_PX more);
+  smaller of the two σ (the texture-free light weighed with a term for 4:2:0 chroma,
+  LIGHT_CHROMA_PX);
 - when they do not, one of them is off, and which one cannot be told from the two: the spot
   keeps the centre the search chose.
 
@@ -36,11 +37,12 @@ TWO_SIGNALS_AGREE = 4.0
 #: … and within this many pixels (farther apart, one is off by half of it or more, whatever
 #: the σ say)
 TWO_SIGNALS_MAX_APART_PX = 1.0
-#: what 4:2:0 chroma leaves on the texture-free light's centre beyond its σ (px), in the
-#: weighing only: that light is a colour difference, sampled in 2 × 2 blocks (a texture-free
-#: centroid of the laser's channel is 0.10-0.19 px off on spots without any scene,
-#: docs/DETECTION.md)
-LIGHT_CHROMA_PX = 0.2
+#: what 4:2:0 chroma leaves on the texture-free light's centre beyond its σ, in the weighing
+#: only: that light is a colour difference, sampled in 2 × 2 blocks, whose pull on a centroid
+#: shrinks as the spot grows: this many px over its half-maximum radius in px (0.2 px at
+#: 1.5 px; a texture-free centroid of the laser's channel is 0.10-0.19 px off on small spots
+#: without any scene, docs/DETECTION.md)
+LIGHT_CHROMA_PX = 0.3
 #: pixels of background around a spot's support in the crop it is centred in
 MARGIN_PX = 12
 
@@ -64,7 +66,7 @@ def two_signal_centre(planes: Planes, guess: SpotGuess, refine: str, sigma_model
     (xa, ya, sa), (xb, yb, sb) = both
     apart = math.hypot(xa - xb, ya - yb)
     spread = sigma_model.disagreement_gain * apart
-    sa_chroma = math.hypot(sa, LIGHT_CHROMA_PX)
+    sa_chroma = math.hypot(sa, LIGHT_CHROMA_PX / max(guess.radius_px, 1.0))
     if apart > min(TWO_SIGNALS_AGREE * math.hypot(sa_chroma, sb), TWO_SIGNALS_MAX_APART_PX):
         return chosen[0], chosen[1], math.hypot(chosen[2], spread)
     wa, wb = 1.0 / sa_chroma**2, 1.0 / sb**2
