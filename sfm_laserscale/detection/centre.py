@@ -5,15 +5,16 @@ the scene's texture by colour, and luma. Each fails in its own way. The texture-
 carries the 2 × 2 blocks of 4:2:0 chroma, and on a clipped core it is read from the channels
 that did not clip, whose share of a green laser's light is the sensor's crosstalk alone, so a
 few pixels of the core set its centre. Luma is kept at full resolution and sees a clipped core
-whole, but holds the scene's texture. The candidate search picks one of them by SNR; once a
-laser's spot is chosen, :func:`centre_on_both` refines it on both:
+whole, but holds the scene's texture. The candidate search picks one of them by SNR, which
+a clipped core's crosstalk pixels inflate; once a laser's spot is chosen,
+:func:`centre_on_both` refines it on both:
 
-- when the two centres agree (within TWO_SIGNALS_AGREE of their σ combined and
-  TWO_SIGNALS_MAX_APART_PX), the spot takes their inverse-variance weighted mean, with the
-  smaller of the two σ (the texture-free light weighed with a term for 4:2:0 chroma,
-  LIGHT_CHROMA_PX);
-- when they do not, one of them is off, and which one cannot be told from the two: the spot
-  keeps the centre the search chose.
+- a clipped core (its laser channel clips) whose two centres agree (within TWO_SIGNALS_AGREE
+  of their σ combined and TWO_SIGNALS_MAX_APART_PX) takes their inverse-variance weighted
+  mean, with the smaller of the two σ (the texture-free light weighed with a term for 4:2:0
+  chroma, LIGHT_CHROMA_PX);
+- otherwise the spot keeps the centre the search chose: two centres that disagree cannot tell
+  which of them is off, and on an unclipped spot the SNR choice compares like with like.
 
 Either way its σ gains (disagreement_gain · d)², d the distance between the two centres
 (:class:`~sfm_laserscale.detection.options.SigmaModel`). Measured in docs/DETECTION.md
@@ -52,7 +53,8 @@ Centre = tuple[float, float, float]  # (x, y, σ), px
 def two_signal_centre(planes: Planes, guess: SpotGuess, refine: str, sigma_model: SigmaModel,
                       chosen: Centre) -> Centre:
     """A luma-dominant laser's spot centred on its texture-free light and on luma (crop COLMAP
-    px): their weighted mean when they agree, else ``chosen``; σ with the disagreement term.
+    px): their weighted mean when its laser channel clips (``guess.bright``) and they agree,
+    else ``chosen``; σ with the disagreement term.
 
     ``chosen`` (the centre the candidate search refined) is returned unchanged when either
     signal cannot be refined or moves more than max(2, radius) px from it.
@@ -67,7 +69,8 @@ def two_signal_centre(planes: Planes, guess: SpotGuess, refine: str, sigma_model
     apart = math.hypot(xa - xb, ya - yb)
     spread = sigma_model.disagreement_gain * apart
     sa_chroma = math.hypot(sa, LIGHT_CHROMA_PX / max(guess.radius_px, 1.0))
-    if apart > min(TWO_SIGNALS_AGREE * math.hypot(sa_chroma, sb), TWO_SIGNALS_MAX_APART_PX):
+    if not guess.bright or apart > min(TWO_SIGNALS_AGREE * math.hypot(sa_chroma, sb),
+                                       TWO_SIGNALS_MAX_APART_PX):
         return chosen[0], chosen[1], math.hypot(chosen[2], spread)
     wa, wb = 1.0 / sa_chroma**2, 1.0 / sb**2
     return ((wa * xa + wb * xb) / (wa + wb), (wa * ya + wb * yb) / (wa + wb),
