@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from sfm_laserscale.detection.candidates import Measure
 from sfm_laserscale.detection.options import DetectionOptions, SigmaModel
-from sfm_laserscale.detection.refine import SpotGuess, luma_dominant, refine_spot
+from sfm_laserscale.detection.refine import SpotGuess, luma_dominant, refine_spot, window
 from sfm_laserscale.detection.response import Planes, crop_channels, make_planes
 
 #: two centres of one spot agree when they lie within this many of their σ combined …
@@ -86,13 +86,12 @@ def centre_on_both(image_rgb: NDArray[np.uint8], m: Measure,
     (their neighbour's light removed), keep theirs."""
     if not (options.two_signal_centre and luma_dominant(np.asarray(laser_rgb))) or m.beside:
         return
-    h, w = image_rgb.shape[:2]
-    reach = int(math.ceil(m.guess().patch_support)) + MARGIN_PX
-    col, row = int(math.floor(m.x)), int(math.floor(m.y))
-    x0, y0 = max(0, col - reach), max(0, row - reach)
-    roi = (x0, y0, min(w, col + reach + 1), min(h, row + reach + 1))
-    planes = make_planes(crop_channels(image_rgb, roi, options.input_gamma), m.color, options,
-                         max_radius, laser_rgb)
+    rows, cols = window(image_rgb.shape, int(math.floor(m.y)), int(math.floor(m.x)),
+                        int(math.ceil(m.guess().patch_support)) + MARGIN_PX)
+    x0, y0 = cols.start, rows.start
+    planes = make_planes(crop_channels(image_rgb, (x0, y0, cols.stop, rows.stop),
+                                       options.input_gamma), m.color, options, max_radius,
+                         laser_rgb)
     guess = SpotGuess(m.x - x0, m.y - y0, m.radius_px, m.support_px, m.bright)
     x, y, sigma = two_signal_centre(planes, guess, options.refine, options.sigma_model,
                                     (m.x - x0, m.y - y0, m.sigma_px))
