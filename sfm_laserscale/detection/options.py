@@ -91,9 +91,9 @@ class DetectionOptions:
     - ``refine``: "centroid" (Gaussian-windowed centroid iterated to its fixed point, the
       default) or "gaussian" (2D Gaussian fit to the unclipped pixels). Spots cut by the image
       border always use the fit.
-    - ``two_signal_centre``: a luma-dominant (green) laser's chosen spot is centred on both of
-      its signals, the texture-free light and luma, and takes their mean when they agree
-      (:mod:`.centre`).
+    - ``two_signal_centre``: a luma-dominant (green) laser's chosen spot is refined on both of
+      its signals, the texture-free light and luma: a clipped core takes their mean when they
+      agree, and every such spot's σ gains their disagreement (:mod:`.centre`).
     - ``sigma_floor_px``, ``sigma_window_gain``, ``sigma_asymmetry_gain``,
       ``sigma_disagreement_gain``: the localisation sigma's terms beyond noise
       (:class:`SigmaModel`): a floor (demosaicing, JPEG chroma), light that is not
