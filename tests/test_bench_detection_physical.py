@@ -87,6 +87,12 @@ def test_reduced_physical_benchmark_quality(bench: ModuleType) -> None:
     # them within 1.96σ and 72 % within 3σ, docs/DETECTION.md)
     axes = [(2 * r["found"], r["within_3sigma_pct"]) for r in rows.values() if r["found"]]
     assert sum(n * pct for n, pct in axes) / sum(n for n, _ in axes) >= 88.0
+    # red spots are centred on a colour difference, sampled in 2 × 2: their σ holds that
+    # (within 1.96σ measured 2026-11-27: red_clean 96 %, red_blue_water 95 %; 67 % and 77 %
+    # before the colour term)
+    red = [(2 * rows[c]["found"], rows[c]["within_2sigma_pct"])
+           for c in ("red_clean", "red_blue_water")]
+    assert sum(n * pct for n, pct in red) / sum(n for n, _ in red) >= 85.0
 
 
 def test_visibility_of_the_misses(bench: ModuleType) -> None:

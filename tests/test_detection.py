@@ -244,7 +244,8 @@ def test_weaker_spots_get_larger_sigma() -> None:
             paint_spot(img, (float(xy[0]), float(xy[1])), "red", sigma_px=2.0, peak=peak)
         img += rng.normal(0, noise, img.shape).astype(np.float32)
         res = detect_spots(to_uint8(img), PINHOLE, rig, DetectionOptions(
-            sigma_floor_px=0.0, sigma_window_gain=0.0, sigma_asymmetry_gain=0.0))
+            sigma_floor_px=0.0, sigma_window_gain=0.0, sigma_asymmetry_gain=0.0,
+            sigma_chroma_px=0.0))
         assert len(res.spots) == 4
         return float(np.mean([s.sigma_px for s in res.spots]))
 
@@ -257,8 +258,10 @@ def test_weaker_spots_get_larger_sigma() -> None:
 def test_sigma_grows_with_light_that_is_not_point_symmetric() -> None:
     """A clean spot's sigma is the floor; a laser-coloured bar 4-7 px beside each spot pulls
     its centre ~1.5 px and its sigma grows with it (the window's shift, the asymmetry), while
-    without those terms it would stay at the floor."""
+    without those terms it would stay at the floor (the colour term left out: it does not
+    depend on the bar, test_a_centre_read_from_colour_holds_the_colour_term)."""
     def spots(bar: float, **kw: float) -> list[tuple[float, float]]:
+        kw = {"sigma_chroma_px": 0.0, **kw}
         rng = np.random.default_rng(5)
         rig = four_laser_rig(rng)
         img = background(rng, PINHOLE.height, PINHOLE.width)
@@ -279,6 +282,31 @@ def test_sigma_grows_with_light_that_is_not_point_symmetric() -> None:
     assert all(e < 0.1 and 0.1 <= s < 0.11 for e, s in clean)
     assert all(e > 1.0 and s > 0.2 for e, s in pulled)
     assert all(s == pytest.approx(0.1, abs=1e-3) for _, s in flat)
+
+
+def test_a_centre_read_from_colour_holds_the_colour_term() -> None:
+    """A red spot is centred on its texture-free light, a colour difference sampled in 2 × 2
+    (Bayer red photosites, 4:2:0 chroma): its σ² gains (0.3 px / half-max radius)², and its
+    centre does not move."""
+    rng = np.random.default_rng(5)
+    rig = four_laser_rig(rng)
+    img = background(rng, PINHOLE.height, PINHOLE.width)
+    truth = spot_positions(rng, PINHOLE, rig)
+    for xy, sigma in zip(truth.values(), (0.7, 1.2, 2.0, 3.0), strict=True):
+        paint_spot(img, (float(xy[0]), float(xy[1])), "red", sigma_px=sigma, peak=2.0)
+    img += rng.normal(0, 0.01, img.shape).astype(np.float32)
+    image = to_uint8(img)
+    plain = detect_spots(image, PINHOLE, rig, DetectionOptions(sigma_chroma_px=0.0))
+    res = detect_spots(image, PINHOLE, rig)
+    assert len(res.spots) == len(plain.spots) == 4
+    for s, p in zip(res.spots, plain.spots, strict=True):
+        (c,) = [c for c in res.candidates if (c.x, c.y) == (s.x, s.y)]
+        assert (s.x, s.y) == (p.x, p.y)
+        assert s.sigma_px == pytest.approx(math.hypot(p.sigma_px, 0.3 / max(1.0, c.radius_px)))
+    radii = sorted(c.radius_px for c in res.candidates if c.laser)
+    assert radii[0] < 1.6 and radii[-1] > 3.0  # the term shrinks as the spot grows
+    with pytest.raises(InputError, match="sigma_chroma_px"):
+        DetectionOptions(sigma_chroma_px=-0.1)
 
 
 def _range_of(rig: Rig, name: str, xy: np.ndarray) -> float:

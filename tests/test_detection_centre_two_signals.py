@@ -87,21 +87,38 @@ def test_an_unclipped_spot_keeps_its_centre_and_gains_the_disagreement_term() ->
     assert sigma == pytest.approx(math.hypot(luma[2], 0.354 * d))
 
 
+def test_only_the_texture_free_light_holds_the_colour_term() -> None:
+    """Luma is kept at full resolution: a green spot refined on it has no colour term; on its
+    texture-free light (a colour difference) σ² gains (chroma_px / radius)²."""
+    planes = _planes(_image(0.0))
+    plain, colour = SigmaModel(chroma_px=0.0), SigmaModel()
+    for signal in ("light", "luma"):
+        a = refine_spot(planes, GUESS, "centroid", sigma_model=plain, signal=signal)
+        b = refine_spot(planes, GUESS, "centroid", sigma_model=colour, signal=signal)
+        assert a[:2] == b[:2]
+        term = colour.chroma(GUESS.radius_px) if signal == "light" else 0.0
+        assert b[2] == pytest.approx(math.hypot(a[2], term))
+    assert colour.chroma(0.5) == colour.chroma(1.0) == 0.3
+    assert colour.chroma(3.0) == pytest.approx(0.1)
+
+
 CHOSEN = (20.0, 20.0, 0.2)
 
 
 @pytest.mark.parametrize(("light", "luma", "expected"), [
-    # agree: inverse-variance weighted mean (the light weighed with σ hypot(0.1, 0.3 / 1.5) px:
-    # 4:2:0 chroma on a spot of radius 1.5 px), the smaller σ with the disagreement term
-    ((20.0, 20.0, 0.1), (20.3, 20.0, 0.2), (20.0 + 0.3 * 25 / 45, 20.0,
-                                            math.hypot(0.1, 0.354 * 0.3))),
+    # the texture-free light's σ holds the colour term (refine_spot: hypot(σ, 0.3 / 1.5) for
+    # a spot of radius 1.5 px), luma's does not
+    # agree: inverse-variance weighted mean, the smaller σ with the disagreement term
+    ((20.0, 20.0, math.hypot(0.1, 0.2)), (20.3, 20.0, 0.2),
+     (20.0 + 0.3 * 25 / 45, 20.0, math.hypot(0.2, 0.354 * 0.3))),
     # 0.8 px apart, but within 4σ combined: agree
-    ((20.0, 20.0, 0.5), (20.8, 20.0, 0.5), (20.0 + 0.8 * 4 / (4 + 1 / 0.29), 20.0,
-                                            math.hypot(0.5, 0.354 * 0.8))),
+    ((20.0, 20.0, math.hypot(0.5, 0.2)), (20.8, 20.0, 0.5),
+     (20.0 + 0.8 * 4 / (4 + 1 / 0.29), 20.0, math.hypot(0.5, 0.354 * 0.8))),
     # 1.5 px apart, within 4σ combined but more than 1 px: the chosen centre is kept
     ((20.0, 20.0, 0.5), (21.5, 20.0, 0.5), (20.0, 20.0, math.hypot(0.2, 0.354 * 1.5))),
     # 0.95 px apart, beyond 4σ combined (0.85 px): the chosen centre is kept
-    ((20.0, 20.0, 0.05), (20.95, 20.0, 0.05), (20.0, 20.0, math.hypot(0.2, 0.354 * 0.95))),
+    ((20.0, 20.0, math.hypot(0.05, 0.2)), (20.95, 20.0, 0.05),
+     (20.0, 20.0, math.hypot(0.2, 0.354 * 0.95))),
     # a signal that cannot be refined, or wanders beyond max(2, radius): nothing changes
     ((20.0, 20.0, math.nan), (20.1, 20.0, 0.1), CHOSEN),
     ((20.0, 20.0, 0.1), (22.5, 20.0, 0.1), CHOSEN),

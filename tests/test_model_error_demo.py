@@ -35,15 +35,17 @@ def focal_2(tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, float]:
 
 def test_focal_off_015_pct_interval_holds_the_truth(focal_015: tuple[Any, float]) -> None:
     """SfM focal +0.15 %, beams diverging 3° (FCM moves ~0.8 × the focal error): |error| within
-    2σ, the intrinsics term the largest of the budget (measured: error +0.09 % against the
-    mesh's scale, σ 0.13 %, of which intrinsics 62 %)."""
+    2σ, the intrinsics term a large share of the budget (measured 2026-11-27: error +0.09 %
+    against the mesh's scale, σ 0.15 %, of which intrinsics 44 % and spots 56 %; before the
+    spots' σ held the 2 × 2 sampling of colour, σ 0.13 % and intrinsics 62 %: the demo's PNG
+    renders keep colour at full resolution, so that term overstates their spots' σ)."""
     res, truth = focal_015
     s = res.report["scale"]
     assert s["method"] == "fcm"
     err = s["value"] - truth
     assert abs(err) <= 2 * s["std"]
     assert s["ci95"][0] <= truth <= s["ci95"][1]
-    assert s["budget_shares"]["intrinsics"] > 0.5
+    assert s["budget_shares"]["intrinsics"] > 0.3
     intr = res.report["model_error"]["intrinsics"]["cameras"][0]
     assert intr["from_covariance"] and intr["focal_sigma_pct"] >= 0.1  # at least the floor
     assert "model_checks" in res.report and res.report["model_checks"]["focal"]["sources"]

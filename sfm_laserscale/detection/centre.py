@@ -11,8 +11,8 @@ a clipped core's crosstalk pixels inflate; once a laser's spot is chosen,
 
 - a clipped core (its laser channel clips) whose two centres agree (within TWO_SIGNALS_AGREE
   of their σ combined and TWO_SIGNALS_MAX_APART_PX) takes their inverse-variance weighted
-  mean, with the smaller of the two σ (the texture-free light weighed with a term for 4:2:0
-  chroma, LIGHT_CHROMA_PX);
+  mean, with the smaller of the two σ (the texture-free light's σ holds the 2 × 2 sampling
+  of colour, ``SigmaModel.chroma_px``);
 - otherwise the spot keeps the centre the search chose: two centres that disagree cannot tell
   which of them is off, and on an unclipped spot the SNR choice compares like with like.
 
@@ -38,12 +38,6 @@ TWO_SIGNALS_AGREE = 4.0
 #: … and within this many pixels (farther apart, one is off by half of it or more, whatever
 #: the σ say)
 TWO_SIGNALS_MAX_APART_PX = 1.0
-#: what 4:2:0 chroma leaves on the texture-free light's centre beyond its σ, in the weighing
-#: only: that light is a colour difference, sampled in 2 × 2 blocks, whose pull on a centroid
-#: shrinks as the spot grows: this many px over its half-maximum radius in px (0.2 px at
-#: 1.5 px; a texture-free centroid of the laser's channel is 0.10-0.19 px off on small spots
-#: without any scene, docs/DETECTION.md)
-LIGHT_CHROMA_PX = 0.3
 #: pixels of background around a spot's support in the crop it is centred in
 MARGIN_PX = 12
 
@@ -68,11 +62,10 @@ def two_signal_centre(planes: Planes, guess: SpotGuess, refine: str, sigma_model
     (xa, ya, sa), (xb, yb, sb) = both
     apart = math.hypot(xa - xb, ya - yb)
     spread = sigma_model.disagreement_gain * apart
-    sa_chroma = math.hypot(sa, LIGHT_CHROMA_PX / max(guess.radius_px, 1.0))
-    if not guess.bright or apart > min(TWO_SIGNALS_AGREE * math.hypot(sa_chroma, sb),
+    if not guess.bright or apart > min(TWO_SIGNALS_AGREE * math.hypot(sa, sb),
                                        TWO_SIGNALS_MAX_APART_PX):
         return chosen[0], chosen[1], math.hypot(chosen[2], spread)
-    wa, wb = 1.0 / sa_chroma**2, 1.0 / sb**2
+    wa, wb = 1.0 / sa**2, 1.0 / sb**2
     return ((wa * xa + wb * xb) / (wa + wb), (wa * ya + wb * yb) / (wa + wb),
             math.hypot(min(sa, sb), spread))
 

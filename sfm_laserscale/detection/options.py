@@ -18,13 +18,23 @@ class SigmaModel:
     :func:`~sfm_laserscale.detection.refine.asymmetry` and σ_w its window (px). A spot
     centred on two signals (:mod:`~sfm_laserscale.detection.centre`) adds
     (disagreement_gain · d)², d (px) the distance between their centres: 1/√8 is the σ per
-    axis of the mean of two estimates with independent errors of equal σ, given d.
+    axis of the mean of two estimates with independent errors of equal σ, given d. A centre
+    read from colour (the texture-free light: a colour difference, which the Bayer mosaic
+    samples at every second pixel and 4:2:0 chroma in 2 × 2 blocks) adds
+    (chroma_px / max(1, r))², r (px) the spot's half-maximum radius: a block's pull on a
+    centroid shrinks as the spot grows.
     """
 
     floor_px: float = 0.1
     window_gain: float = 0.5
     asymmetry_gain: float = 0.12
     disagreement_gain: float = 0.354
+    chroma_px: float = 0.3
+
+    def chroma(self, radius_px: float) -> float:
+        """The colour term (px, per axis) of a centre read from colour, for a spot of
+        half-maximum radius ``radius_px``."""
+        return self.chroma_px / max(1.0, radius_px)
 
 
 @dataclass(frozen=True)
@@ -95,9 +105,10 @@ class DetectionOptions:
       its signals, the texture-free light and luma: a clipped core takes their mean when they
       agree, and every such spot's σ gains their disagreement (:mod:`.centre`).
     - ``sigma_floor_px``, ``sigma_window_gain``, ``sigma_asymmetry_gain``,
-      ``sigma_disagreement_gain``: the localisation sigma's terms beyond noise
-      (:class:`SigmaModel`): a floor (demosaicing, JPEG chroma), light that is not
-      point-symmetric about the centre, and the distance between two signals' centres.
+      ``sigma_disagreement_gain``, ``sigma_chroma_px``: the localisation sigma's terms beyond
+      noise (:class:`SigmaModel`): a floor (demosaicing, JPEG chroma), light that is not
+      point-symmetric about the centre, the distance between two signals' centres, and the
+      2 × 2 sampling of colour for a centre read from it.
     """
 
     min_range_m: float = 0.5
@@ -128,12 +139,13 @@ class DetectionOptions:
     sigma_asymmetry_gain: float = 0.12
     two_signal_centre: bool = True
     sigma_disagreement_gain: float = 0.354
+    sigma_chroma_px: float = 0.3
 
     @property
     def sigma_model(self) -> SigmaModel:
         """The localisation sigma's terms beyond noise."""
         return SigmaModel(self.sigma_floor_px, self.sigma_window_gain, self.sigma_asymmetry_gain,
-                          self.sigma_disagreement_gain)
+                          self.sigma_disagreement_gain, self.sigma_chroma_px)
 
     def __post_init__(self) -> None:
         if not 0.0 < self.min_range_m < self.max_range_m:
@@ -148,7 +160,7 @@ class DetectionOptions:
             raise InputError(f"refine must be 'centroid' or 'gaussian', got {self.refine!r}")
         for name in ("min_clutter_ratio", "second_look_clutter_ratio", "alone_min_score",
                      "sigma_floor_px", "sigma_window_gain", "sigma_asymmetry_gain",
-                     "sigma_disagreement_gain"):
+                     "sigma_disagreement_gain", "sigma_chroma_px"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("snr_half", "clutter_half", "colour_tau"):

@@ -82,7 +82,8 @@ class SpotPatch:
     ``gx``/``gy``: pixel centres (COLMAP convention); ``signal``: see the module docstring, with
     clipped pixels inside the support set to the highest unclipped value there (a flat top);
     ``usable``: no channel clipped; ``noise``: robust std of the signal on the background
-    ring; ``support_px``: radius of the spot support.
+    ring; ``support_px``: radius of the spot support; ``from_colour``: the signal is the
+    texture-free light (a colour difference), not luma.
     """
 
     gx: F64
@@ -92,6 +93,7 @@ class SpotPatch:
     noise: float
     support_px: float
     cut: bool  # the support disc is cut by the image border
+    from_colour: bool = False
 
 
 def _plane_residual(value: F64, gx: F64, gy: F64, ring: NDArray[np.bool_]) -> F64:
@@ -241,11 +243,12 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
     for nb in neighbours:
         value = value - nb.at(gx, gy)
     sig = _plane_residual(value, gx, gy, ring)
+    from_colour = True
     if allow_luma and not neighbours and luma_dominant(planes.laser_rgb) and signal != "light":
         sig_l = _plane_residual(rgb @ LUMA, gx, gy, ring)
         if signal == "luma" or (_snr(sig_l, ring, inner & ~clipped)
                                 >= LUMA_SNR_RATIO * _snr(sig, ring, inner & ~undetermined)):
-            sig, undetermined = sig_l, clipped
+            sig, undetermined, from_colour = sig_l, clipped, False
     top = inner & undetermined
     if top.any():
         ok = inner & ~undetermined
@@ -257,7 +260,7 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
     cut = bool(x0 - support_px < 0 or y0 - support_px < 0 or x0 + support_px > w
                or y0 + support_px > h)
     return SpotPatch(gx=gx, gy=gy, signal=sig, usable=~clipped, noise=robust_std(sig[ring]),
-                     support_px=support_px, cut=cut)
+                     support_px=support_px, cut=cut, from_colour=from_colour)
 
 
 @dataclass(frozen=True)
@@ -433,17 +436,18 @@ def refine_spot(planes: Planes, guess: SpotGuess, refine: str,
     patch = spot_patch(planes, guess, guess.patch_support, neighbours, signal=signal)
     if patch is None:
         return math.nan, math.nan, math.nan
+    floor = math.hypot(sigma_model.floor_px,
+                       sigma_model.chroma(guess.radius_px) if patch.from_colour else 0.0)
     if refine == "gaussian" or patch.cut:
         # a spot cut by the image border: a centroid would be pulled inwards, a symmetric
         # model fitted to the visible pixels is not (and has no structure term: the wide
         # window's centroid would move inwards for any spot)
         x, y, sig = refine_gaussian(patch, guess.x, guess.y, sigma_w)
-        return x, y, math.hypot(sig, sigma_model.floor_px)
+        return x, y, math.hypot(sig, floor)
     x, y, sig = refine_centroid(patch, guess.x, guess.y, sigma_w)
     if not math.isfinite(sig):
         return x, y, sig
-    return x, y, math.hypot(sig, structure_sigma(patch, x, y, sigma_w, sigma_model),
-                            sigma_model.floor_px)
+    return x, y, math.hypot(sig, structure_sigma(patch, x, y, sigma_w, sigma_model), floor)
 
 
 def asymmetry(patch: SpotPatch, x: float, y: float, radius_px: float) -> float:
