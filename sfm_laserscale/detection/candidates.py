@@ -351,13 +351,15 @@ def _better_of_the_two(out: list[Measure], m: Measure, rc: tuple[int, int], plan
 def separate_overlapping(planes: Planes, valid: list[Measure], options: DetectionOptions,
                          rounds: int = 3) -> None:
     """In place: re-refine spots whose supports overlap, each with its neighbours' light
-    (modelled from their far sides, :func:`neighbour_model`) removed. Alternating rounds."""
+    (modelled from their far sides, :func:`neighbour_model`) removed. Alternating rounds; the
+    rounds together move a spot at most max(2, radius) px from its measured centre."""
     support = [m.guess().patch_support for m in valid]
     groups = {i: [j for j, o in enumerate(valid) if j != i and
                   math.hypot(o.x - m.x, o.y - m.y) < support[i] + support[j]]
               for i, m in enumerate(valid)}
     if not any(groups.values()):
         return
+    start = [(m.x, m.y) for m in valid]
     models: dict[tuple[int, int], NeighbourModel] = {}  # (spot, for whom) -> model
     for _ in range(rounds):
         fresh: dict[tuple[int, int], NeighbourModel] = {}
@@ -375,7 +377,7 @@ def separate_overlapping(planes: Planes, valid: list[Measure], options: Detectio
             if not mine:
                 continue
             x, y, sig = refine_spot(planes, m.guess(), options.refine, mine, options.sigma_model)
-            if math.isfinite(sig) and math.hypot(x - m.x, y - m.y) <= max(2.0, m.radius_px):
+            if math.isfinite(sig) and math.dist((x, y), start[i]) <= max(2.0, m.radius_px):
                 m.x, m.y = x, y
                 m.sigma_px = sig
                 m.beside = True
