@@ -25,7 +25,8 @@ refined with each other's modelled light removed (:class:`NeighbourModel`).
 The localisation sigma is the ring noise through the centroid plus what noise does not show
 (:class:`~sfm_laserscale.detection.options.SigmaModel`): light that is not point-symmetric
 about the centre (:func:`structure_sigma`: the fixed point's shift under a wider window, the
-spot's :func:`asymmetry`) and a floor for demosaicing and chroma subsampling.
+spot's :func:`asymmetry`), a floor for demosaicing and chroma subsampling, and for a centre
+read from the texture-free light (a colour difference) the 2 × 2 sampling of colour.
 """
 
 from __future__ import annotations
