@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from sfm_laserscale.synthetic.underwater import CONDITIONS, Frame, render_frame
 
@@ -213,6 +214,51 @@ def _within(recs: list[dict[str, Any]], k: float) -> float | None:
     return 100.0 * float(np.mean(np.array(z) <= k)) if z else None
 
 
+def _z_and_errors(recs: Sequence[dict[str, Any]]
+                  ) -> tuple[NDArray[np.float64], NDArray[np.float64], list[float]]:
+    """The found spots' per-axis |error| / σ, per-axis signed errors (px) and stated σ (px)."""
+    found = [f for r in recs for f in r["found"] if f.get("sigma_px")]
+    errs = np.array([f[k] for f in found for k in ("dx", "dy")], dtype=np.float64)
+    z = np.array([abs(f[k]) / f["sigma_px"] for f in found for k in ("dx", "dy")],
+                 dtype=np.float64)
+    return z, errs, [f["sigma_px"] for f in found]
+
+
+def _sigma_words(recs: Sequence[dict[str, Any]]) -> str:
+    """How the found spots' stated σ holds their errors, in words."""
+    z, errs, sigmas = _z_and_errors(recs)
+    if not sigmas:
+        return "no spot found"
+    robust = 1.4826 * float(np.median(np.abs(errs - np.median(errs))))
+    return (f"{len(sigmas)} spots, per-axis error {robust:.3f} px (robust σ), stated σ "
+            f"{float(np.median(sigmas)):.3f} px (median), within 1.96σ "
+            f"{100 * float(np.mean(z <= 1.96)):.1f} %, within 3σ "
+            f"{100 * float(np.mean(z <= 3.0)):.1f} %, worst {float(z.max()):.1f}σ")
+
+
+def pooled_lines(records: Sequence[dict[str, Any]]) -> list[str]:
+    """Per image size: the pooled counts and errors, and the stated σ against the errors for
+    all spots and per laser wavelength."""
+    lines = []
+    for size in dict.fromkeys(r["size"] for r in records):
+        recs = [r for r in records if r["size"] == size]
+        errs = [f["error_px"] for r in recs for f in r["found"]]
+        spots = sum(r["truths"] for r in recs)
+        reported = sum(r["reported"] for r in recs)
+        n_false = sum(len(r["falses"]) for r in recs)
+        lines.append(
+            f"{size} pooled: {len(errs)} of {spots} spots found "
+            f"({_fmt(100.0 * len(errs) / spots if spots else None, 1)} %), {n_false} false of "
+            f"{reported} reported ({_fmt(100.0 * n_false / reported if reported else None, 1)}"
+            f" %); median {_fmt(_percentile(errs, 50), 3)} px, p95 "
+            f"{_fmt(_percentile(errs, 95), 3)} px")
+        lines.append(f"{size} σ, all: {_sigma_words(recs)}")
+        for nm in sorted({r["wavelength_nm"] for r in recs if r.get("wavelength_nm")}):
+            lines.append(f"{size} σ, {nm:g} nm: "
+                         f"{_sigma_words([r for r in recs if r.get('wavelength_nm') == nm])}")
+    return lines
+
+
 def _reason_kind(reason: str) -> str:
     """The gist of a miss reason, numbers replaced by #, to count kinds of reasons: for the
     detector's "no X spot accepted within N px of its beam: (x, y) why; (x, y) why; ..." the
@@ -328,6 +374,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(f"{'':28s}{n:3d}x {kind}")
     if (line := visibility_line(rows)) is not None:
         print(line)
+    print("\n".join(pooled_lines(records)))
     print(f"{len(records)} images in {elapsed:.0f} s", file=sys.stderr)
     return 0
 

@@ -56,6 +56,26 @@ def test_summary_rows(bench: ModuleType) -> None:
     assert "| c | 8x8 |" in bench.markdown_table([row])
 
 
+def test_pooled_lines_per_size_and_wavelength(bench: ModuleType) -> None:
+    def rec(size: str, nm: float, dx: float, sigma: float) -> dict:
+        return {"size": size, "wavelength_nm": nm, "truths": 2, "reported": 2,
+                "found": [{"error_px": abs(dx), "dx": dx, "dy": 0.0, "sigma_px": sigma}],
+                "falses": [{"laser": "L2"}]}
+
+    # 532 nm: per-axis errors 0.1 / 0.1 px (σ), 0.4 / 0.1 (4σ) and two zeros; 638 nm: 2σ
+    recs = [rec("8x8", 532.0, 0.1, 0.1), rec("8x8", 532.0, 0.4, 0.1),
+            rec("8x8", 638.0, 0.2, 0.1), rec("4x4", 450.0, 0.0, 0.1)]
+    lines = bench.pooled_lines(recs)
+    assert [ln.split(":")[0] for ln in lines] == [
+        "8x8 pooled", "8x8 σ, all", "8x8 σ, 532 nm", "8x8 σ, 638 nm",
+        "4x4 pooled", "4x4 σ, all", "4x4 σ, 450 nm"]
+    assert lines[0].startswith("8x8 pooled: 3 of 6 spots found (50.0 %), 3 false of 6")
+    assert "median 0.200 px" in lines[0]
+    assert "2 spots" in lines[2] and "within 1.96σ 75.0 %, within 3σ 75.0 %, worst 4.0σ" in lines[2]
+    assert "within 1.96σ 50.0 %, within 3σ 100.0 %, worst 2.0σ" in lines[3]
+    assert "3 spots" in lines[1] and "within 1.96σ 66.7 %" in lines[1]
+
+
 def test_reduced_run_end_to_end(bench: ModuleType) -> None:
     rows = bench.run_small(("clipped_cores", "no_lasers"), (480, 360), per_condition=1)
     assert [r["condition"] for r in rows] == ["clipped_cores", "no_lasers"]
