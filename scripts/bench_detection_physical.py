@@ -209,9 +209,8 @@ def visibility_line(rows: Sequence[dict[str, Any]]) -> str | None:
 
 def _within(recs: list[dict[str, Any]], k: float) -> float | None:
     """Share (%) of the found spots' per-axis errors within k of their stated sigma."""
-    z = [abs(d) / f["sigma_px"] for r in recs for f in r["found"] if f.get("sigma_px")
-         for d in (f["dx"], f["dy"])]
-    return 100.0 * float(np.mean(np.array(z) <= k)) if z else None
+    z = _z_and_errors(recs)[0]
+    return 100.0 * float(np.mean(z <= k)) if z.size else None
 
 
 def _z_and_errors(recs: Sequence[dict[str, Any]]
