@@ -10,7 +10,8 @@ which are measured for the second look of :mod:`.assign` but stay out of the fir
 The others are measured (:mod:`.shape`), refined (:mod:`.refine`) and get their evidence
 (:mod:`.score`); hard tests (no contrast, too large, not compact, weak, refinement failed)
 reject a candidate with a reason, everything else is evidence in its score.
-Overlapping spots are refined again with each other's light removed.
+Overlapping spots are refined again with each other's light removed (for a luma-dominant
+laser, only spots whose cores are near: :func:`overlap_reach`).
 """
 
 from __future__ import annotations
@@ -348,14 +349,38 @@ def _better_of_the_two(out: list[Measure], m: Measure, rc: tuple[int, int], plan
         out[out.index(o)] = m
 
 
+def overlap_reach(planes: Planes, valid: list[Measure], options: DetectionOptions
+                  ) -> list[float]:
+    """Per candidate, its reach (px): two candidates overlap when their centres lie closer
+    than their reaches summed.
+
+    A spot refined beside its neighbours is read on the texture-free light alone, without
+    luma (:mod:`.refine`, :mod:`.centre`). For red and blue lasers that is the signal anyway,
+    and the reach is the refinement window (``patch_support``): in turbid water a neighbour's
+    halo inside that window also enters the background fitted on its ring. A luma-dominant
+    (green) laser's spot loses luma by it, which on a clipped core leaves its light read from
+    the sensor's crosstalk; and a bright core's support holds its forward-scatter halo (37–68
+    px for cores 16–46× white), so cores 60–120 px apart were refined beside each other and
+    ended ~1 px off. Its reach is ``options.luma_separation_radii`` half-maximum radii (at
+    least 1 px each): a neighbour's light within the centroid's window. None: the window for
+    all (docs/DETECTION.md, "Overlapping spots").
+    """
+    radii = options.luma_separation_radii
+    if radii is None or not luma_dominant(planes.laser_rgb):
+        return [m.guess().patch_support for m in valid]
+    return [radii * max(1.0, m.radius_px) for m in valid]
+
+
 def separate_overlapping(planes: Planes, valid: list[Measure], options: DetectionOptions,
                          rounds: int = 3) -> None:
-    """In place: re-refine spots whose supports overlap, each with its neighbours' light
-    (modelled from their far sides, :func:`neighbour_model`) removed. Alternating rounds; the
-    rounds together move a spot at most max(2, radius) px from its measured centre."""
+    """In place: re-refine spots that overlap (:func:`overlap_reach`), each with its
+    neighbours' light (modelled from their far sides, :func:`neighbour_model`) removed.
+    Alternating rounds; the rounds together move a spot at most max(2, radius) px from its
+    measured centre."""
     support = [m.guess().patch_support for m in valid]
+    reach = overlap_reach(planes, valid, options)
     groups = {i: [j for j, o in enumerate(valid) if j != i and
-                  math.hypot(o.x - m.x, o.y - m.y) < support[i] + support[j]]
+                  math.hypot(o.x - m.x, o.y - m.y) < reach[i] + reach[j]]
               for i, m in enumerate(valid)}
     if not any(groups.values()):
         return

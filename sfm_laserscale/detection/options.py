@@ -104,6 +104,10 @@ class DetectionOptions:
     - ``two_signal_centre``: a luma-dominant (green) laser's chosen spot is refined on both of
       its signals, the texture-free light and luma: a clipped core takes their mean when they
       agree, and every such spot's σ gains their disagreement (:mod:`.centre`).
+    - ``luma_separation_radii``: a luma-dominant (green) laser's spots are refined with a
+      neighbour's light removed (read on the texture-free light alone) only when their centres
+      lie within this many half-maximum radii (theirs summed); None: when their refinement
+      windows overlap, as red and blue spots (:func:`.candidates.overlap_reach`).
     - ``sigma_floor_px``, ``sigma_window_gain``, ``sigma_asymmetry_gain``,
       ``sigma_disagreement_gain``, ``sigma_chroma_px``: the localisation sigma's terms beyond
       noise (:class:`SigmaModel`): a floor (demosaicing, JPEG chroma), light that is not
@@ -138,6 +142,7 @@ class DetectionOptions:
     sigma_window_gain: float = 0.5
     sigma_asymmetry_gain: float = 0.12
     two_signal_centre: bool = True
+    luma_separation_radii: float | None = 3.0
     sigma_disagreement_gain: float = 0.354
     sigma_chroma_px: float = 0.3
 
@@ -170,7 +175,8 @@ class DetectionOptions:
             raise InputError("spot_sigmas_px must be positive")
         if self.floor_min_spots < 2:
             raise InputError(f"floor_min_spots must be >= 2, got {self.floor_min_spots}")
-        for name in ("band_px", "max_spot_radius_px", "floor_radius_px"):
+        for name in ("band_px", "max_spot_radius_px", "floor_radius_px",
+                     "luma_separation_radii"):
             value = getattr(self, name)
             if value is not None and value <= 0:
                 raise InputError(f"{name} must be positive, got {value}")
