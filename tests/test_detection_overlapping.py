@@ -11,7 +11,7 @@ Which candidates overlap (:func:`~sfm_laserscale.detection.candidates.overlap_re
 blue spots whose refinement windows overlap; a green (luma-dominant) laser's spots only when
 their cores are within ``luma_separation_radii`` half-maximum radii, since a spot refined
 beside a neighbour loses luma. Physical frames of the independent generator: clipped green
-cores 60–120 px apart, whose supports hold their forward-scatter halos, were refined beside
+cores 40–180 px apart, whose supports hold their forward-scatter halos, were refined beside
 each other and ended ~1 px off.
 """
 

@@ -355,15 +355,14 @@ def overlap_reach(planes: Planes, valid: list[Measure], options: DetectionOption
     than their reaches summed.
 
     A spot refined beside its neighbours is read on the texture-free light alone, without
-    luma (:mod:`.refine`, :mod:`.centre`). For red and blue lasers that is the signal anyway,
-    and the reach is the refinement window (``patch_support``): in turbid water a neighbour's
-    halo inside that window also enters the background fitted on its ring. A luma-dominant
-    (green) laser's spot loses luma by it, which on a clipped core leaves its light read from
-    the sensor's crosstalk; and a bright core's support holds its forward-scatter halo (37–68
-    px for cores 16–46× white), so cores 60–120 px apart were refined beside each other and
-    ended ~1 px off. Its reach is ``options.luma_separation_radii`` half-maximum radii (at
+    luma (:mod:`.refine`, :mod:`.centre`). For red and blue lasers that is their signal anyway,
+    and their reach is the refinement window (``patch_support``): a neighbour's halo inside
+    it also enters the background fitted on its ring (turbid water). A luma-dominant (green)
+    laser's spot loses luma by it, on a clipped core the better of its two signals, and a
+    bright core's support holds its forward-scatter halo, so cores far apart would be refined
+    beside each other. Its reach is ``options.luma_separation_radii`` half-maximum radii (at
     least 1 px each): a neighbour's light within the centroid's window. None: the window for
-    all (docs/DETECTION.md, "Overlapping spots").
+    every colour. Measured in docs/DETECTION.md ("Overlapping spots").
     """
     radii = options.luma_separation_radii
     if radii is None or not luma_dominant(planes.laser_rgb):
