@@ -180,6 +180,21 @@ def test_sensor_maps_channels_and_clips() -> None:
 
 # --- scenes and conditions ----------------------------------------------------------------
 
+def test_a_spot_at_the_frame_edge_keeps_its_pixels() -> None:
+    """The sensor is wider than the recorded frame: a spot 2 px from the edge renders as the
+    same spot in the middle does (OpenCV demosaicing the frame alone copied the edge pixels
+    from their inner neighbours: up to 190 levels more on the outermost column)."""
+    s = sensor.SensorSettings(noise=False, jpeg=False, sharpen=0.3, glare_fraction=0.0)
+    yy, xx = np.mgrid[0:16, 0:16] + 0.5
+    light = np.exp(-0.5 * ((xx - 8.0) ** 2 + (yy - 8.0) ** 2) / 0.9**2)[..., None]
+    crop = np.ascontiguousarray(np.repeat(light, 3, axis=2) * np.float32(0.6), np.float32)
+    rad = np.full((40, 64, 3), 0.05, np.float32)
+    # spot centres at x = 2.0 (6 px of the crop beyond the left edge) and x = 34.0, y = 20.0
+    edge = sensor.capture(rad, s, np.random.default_rng(1), [(-6, 12, crop)]).astype(float)
+    mid = sensor.capture(rad, s, np.random.default_rng(1), [(26, 12, crop)]).astype(float)
+    # the same Bayer phase 32 px apart: the same pixels
+    assert np.abs(edge[14:27, 0:8] - mid[14:27, 32:40]).max() <= 1
+
 def test_pale_clutter_reads_green_cyan_in_green_water() -> None:
     frame = render_frame("green_all", 640, 480, np.random.default_rng(2))
     img = frame.image_rgb.astype(float)

@@ -14,9 +14,11 @@ the sensor's white, i.e. a full photosite). Steps (:func:`capture`):
    from the full-well capacity in electrons) and read noise, clipping of every photosite at
    the white (1.0), 12-bit quantisation;
 3. processing: demosaicing (OpenCV edge-aware, 16-bit; note OpenCV calls an RGGB sensor
-   "BayerBG"), white-balance gains, highlight clipping, a colour-correction matrix (rows sum to
-   1, negative off-diagonals: it removes part of the filters' crosstalk and clips to 0), sRGB
-   transfer curve, an optional mild tone S-curve and unsharp-mask sharpening, 8 bits;
+   "BayerBG"; the sensor is SENSOR_MARGIN_PX wider on each side than the recorded frame, so
+   the frame's outer pixels are demosaiced and sharpened with real neighbours), white-balance
+   gains, highlight clipping, a colour-correction matrix (rows sum to 1, negative
+   off-diagonals: it removes part of the filters' crosstalk and clips to 0), sRGB transfer
+   curve, an optional mild tone S-curve and unsharp-mask sharpening, 8 bits;
 4. JPEG at the given quality with 4:2:0 chroma subsampling (``IMWRITE_JPEG_SAMPLING_FACTOR``),
    decoded back to uint8 RGB.
 """
@@ -42,6 +44,11 @@ CENTRE_QUANTILE = 99.0
 DEMOSAIC_RGGB = cv2.COLOR_BayerBG2RGB_EA
 #: (x0, y0, light (h, w, 3)): a crop of light whose top-left pixel is (x0, y0)
 Crop = tuple[int, int, NDArray[np.float32]]
+#: photosites beyond the recorded frame on each side (even: keeps the Bayer phase). A camera
+#: demosaics and sharpens the pixels it records with the sensor's margin around them; OpenCV
+#: demosaicing a frame by itself copies its outer pixels from their inner neighbours instead,
+#: which moved a spot within 4 px of the edge by up to 0.8 px outwards
+SENSOR_MARGIN_PX = 8
 
 
 @dataclass(frozen=True)
@@ -103,12 +110,15 @@ def line_kernel(length_px: float, angle_rad: float) -> F32:
     return (ker / ker.sum()).astype(np.float32)
 
 
-def lens(rgb: F32, s: SensorSettings, post_psf: Sequence[Crop] = ()) -> F32:
+def lens(rgb: F32, s: SensorSettings, post_psf: Sequence[Crop] = (), margin_px: int = 0
+         ) -> F32:
     """Optical PSF, then (after adding ``post_psf`` light crops that were rendered with the
     PSF already: the laser spots) whole-frame defocus, motion blur and veiling glare (linear).
     Lateral chromatic aberration is applied to the laser light only (see
     :func:`chromatic_shift_px`): on the seabed texture a 0.1-0.4 px shift of R and B is
-    invisible."""
+    invisible. ``margin_px``: the sensor's margin around the recorded frame; the glare is
+    that of the recorded frame's light (a kernel of 2 % of its width; the margin's few pixels
+    add nothing to it), mirrored into the margin."""
     out = rgb
     if s.psf_sigma_px > 0.0:
         out = cv2.GaussianBlur(out, (0, 0), s.psf_sigma_px, borderType=cv2.BORDER_REFLECT)
@@ -121,7 +131,11 @@ def lens(rgb: F32, s: SensorSettings, post_psf: Sequence[Crop] = ()) -> F32:
         out = cv2.filter2D(out, -1, line_kernel(s.motion_px, s.motion_angle_rad),
                            borderType=cv2.BORDER_REFLECT)
     if s.glare_fraction > 0.0:
-        glare = wide_blur(out, 0.02 * out.shape[1])
+        m = margin_px
+        frame = out[m:out.shape[0] - m, m:out.shape[1] - m]
+        glare = wide_blur(frame, 0.02 * frame.shape[1])
+        if m:
+            glare = cv2.copyMakeBorder(glare, m, m, m, m, cv2.BORDER_REFLECT_101)
         out = cv2.scaleAdd(glare, s.glare_fraction, out)
     return np.asarray(out, np.float32)
 
@@ -181,12 +195,22 @@ def bayer_mosaic(rgb: F32) -> F32:
     return raw
 
 
-def expose_raw(raw: F32, s: SensorSettings, rng: np.random.Generator) -> NDArray[np.uint16]:
-    """Shot and read noise, clipping at the white, ADC quantisation -> 16-bit raw."""
+def expose_raw(raw: F32, s: SensorSettings, rng: np.random.Generator, margin_px: int = 0
+               ) -> NDArray[np.uint16]:
+    """Shot and read noise, clipping at the white, ADC quantisation -> 16-bit raw.
+
+    ``margin_px``: the sensor's margin around the recorded frame (even). The noise is drawn
+    for the recorded frame only (the same draws with or without a margin) and mirrored into
+    the margin (:data:`cv2.BORDER_REFLECT_101` keeps the Bayer phase)."""
     if s.noise:
         electrons = np.maximum(raw, 0.0) * np.float32(s.full_well_e)
         sigma = np.sqrt(electrons + np.float32(s.read_noise_e ** 2))
-        noise = rng.standard_normal(raw.shape, dtype=np.float32) * sigma
+        m = margin_px
+        draws = rng.standard_normal((raw.shape[0] - 2 * m, raw.shape[1] - 2 * m),
+                                    dtype=np.float32)
+        if m:
+            draws = cv2.copyMakeBorder(draws, m, m, m, m, cv2.BORDER_REFLECT_101)
+        noise = draws * sigma
         raw = (electrons + noise) * np.float32(1.0 / s.full_well_e)
     levels = (1 << s.adc_bits) - 1
     code = np.rint(np.clip(raw, 0.0, 1.0) * np.float32(levels))
@@ -249,15 +273,21 @@ def capture(radiance: F32, s: SensorSettings, rng: np.random.Generator,
             post_psf: Sequence[Crop] = ()) -> U8:
     """The whole camera: exposed linear radiance (H, W, 3) -> decoded JPEG (H, W, 3) uint8.
     ``post_psf``: (x0, y0, light) crops already blurred by the PSF (laser spots), added after
-    the PSF (see :func:`lens`)."""
-    lit = lens(radiance, s, post_psf)
-    raw16 = expose_raw(bayer_mosaic(lit), s, rng)
+    the PSF (see :func:`lens`). The sensor is SENSOR_MARGIN_PX wider on each side than the
+    frame it records (the scene mirrored there, the crops' own light where they reach it);
+    the margin is cut off after sharpening."""
+    m = SENSOR_MARGIN_PX
+    sensor_radiance = cv2.copyMakeBorder(radiance, m, m, m, m, cv2.BORDER_REFLECT_101)
+    lit = lens(sensor_radiance, s, [(x0 + m, y0 + m, light) for x0, y0, light in post_psf], m)
+    del sensor_radiance
+    raw16 = expose_raw(bayer_mosaic(lit), s, rng, margin_px=m)
     del lit
     lin = cv2.cvtColor(raw16, DEMOSAIC_RGGB).astype(np.float32) * np.float32(1.0 / 65535.0)
     enc = develop(lin, s)
     if s.sharpen > 0.0:
         blur = cv2.GaussianBlur(enc, (0, 0), 1.0)
         enc = cv2.addWeighted(enc, 1.0 + s.sharpen, blur, -s.sharpen, 0.0)
+    enc = enc[m:enc.shape[0] - m, m:enc.shape[1] - m]
     rgb8 = np.clip(np.rint(enc * 255.0), 0, 255).astype(np.uint8)
     return jpeg_roundtrip(rgb8, s.jpeg_quality, s.chroma_420) if s.jpeg else rgb8
 
