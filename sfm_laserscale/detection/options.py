@@ -22,7 +22,10 @@ class SigmaModel:
     read from colour (the texture-free light: a colour difference, which the Bayer mosaic
     samples at every second pixel and 4:2:0 chroma in 2 × 2 blocks) adds
     (chroma_px / max(1, r))², r (px) the spot's half-maximum radius: a block's pull on a
-    centroid shrinks as the spot grows.
+    centroid shrinks as the spot grows. A spot cut by the image border (fitted by a 2D Gaussian,
+    with no wide-window term) adds (window_gain · d)², d (px) the distance from the fit to the
+    centroid whose window keeps only pixels mirrored inside the image
+    (:func:`~sfm_laserscale.detection.refine.cut_sigma`).
     """
 
     floor_px: float = 0.1

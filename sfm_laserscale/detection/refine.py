@@ -26,7 +26,9 @@ The localisation sigma is the ring noise through the centroid plus what noise do
 (:class:`~sfm_laserscale.detection.options.SigmaModel`): light that is not point-symmetric
 about the centre (:func:`structure_sigma`: the fixed point's shift under a wider window, the
 spot's :func:`asymmetry`), a floor for demosaicing and chroma subsampling, and for a centre
-read from the texture-free light (a colour difference) the 2 × 2 sampling of colour.
+read from the texture-free light (a colour difference) the 2 × 2 sampling of colour. A spot cut
+by the border has instead :func:`cut_sigma`: how far its fit lies from the centroid whose
+window keeps only pixels mirrored inside the image.
 """
 
 from __future__ import annotations
@@ -95,6 +97,7 @@ class SpotPatch:
     support_px: float
     cut: bool  # the support disc is cut by the image border
     from_colour: bool = False
+    bounds: tuple[float, float] = (math.inf, math.inf)  # the crop's width and height (px)
 
 
 def _plane_residual(value: F64, gx: F64, gy: F64, ring: NDArray[np.bool_]) -> F64:
@@ -261,7 +264,8 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
     cut = bool(x0 - support_px < 0 or y0 - support_px < 0 or x0 + support_px > w
                or y0 + support_px > h)
     return SpotPatch(gx=gx, gy=gy, signal=sig, usable=~clipped, noise=robust_std(sig[ring]),
-                     support_px=support_px, cut=cut, from_colour=from_colour)
+                     support_px=support_px, cut=cut, from_colour=from_colour,
+                     bounds=(float(w), float(h)))
 
 
 @dataclass(frozen=True)
@@ -312,9 +316,23 @@ def _centroid_step(
 
 
 def _window_weights(patch: SpotPatch, x: float, y: float, sigma_w: float) -> F64:
-    """The Gaussian window (sigma ``sigma_w``, cut at the support radius) centred on (x, y)."""
+    """The Gaussian window (sigma ``sigma_w``, cut at the support radius) centred on (x, y);
+    for a spot cut by the border, only where its reflection through (x, y) is in the image
+    too (:func:`mirrored_inside`), so the window stays point-symmetric about (x, y)."""
     rr2 = (patch.gx - x) ** 2 + (patch.gy - y) ** 2
-    return np.asarray(np.exp(-0.5 * rr2 / (sigma_w * sigma_w)) * (rr2 < patch.support_px**2))
+    g = np.exp(-0.5 * rr2 / (sigma_w * sigma_w)) * (rr2 < patch.support_px**2)
+    if patch.cut:
+        g = (g * mirrored_inside(patch.gx, x, patch.bounds[0])
+             * mirrored_inside(patch.gy, y, patch.bounds[1]))
+    return np.asarray(g)
+
+
+def mirrored_inside(centres: F64, c: float, size: float) -> F64:
+    """Share of each pixel (its centre's coordinate along one axis, px) that lies inside the
+    image [0, size] with its reflection through ``c``: the interval symmetric about ``c``."""
+    lo, hi = max(0.0, 2.0 * c - size), min(size, 2.0 * c)
+    return np.asarray(np.clip(np.minimum(centres + 0.5, hi) - np.maximum(centres - 0.5, lo),
+                              0.0, 1.0))
 
 
 #: a step between these fractions of the previous one, in the same direction, is a steady creep:
@@ -426,6 +444,17 @@ def structure_sigma(patch: SpotPatch, x: float, y: float, sigma_w: float,
     return math.hypot(model.window_gain * shift, model.asymmetry_gain * skew)
 
 
+def cut_sigma(patch: SpotPatch, x: float, y: float, sigma_w: float,
+              model: SigmaModel) -> float:
+    """σ (px, per axis) of a cut spot's fitted centre (x, y) from light the symmetric model
+    does not hold: window_gain × its distance to the centroid whose window keeps only pixels
+    mirrored inside the image (both unbiased for a point-symmetric spot); 0 for uncut spots."""
+    if not patch.cut or not math.isfinite(x):
+        return 0.0
+    xs, ys, _ = refine_centroid(patch, x, y, sigma_w)
+    return model.window_gain * math.hypot(xs - x, ys - y) if math.isfinite(xs) else 0.0
+
+
 def refine_spot(planes: Planes, guess: SpotGuess, refine: str,
                 neighbours: tuple[NeighbourModel, ...] = (),
                 sigma_model: SigmaModel = SigmaModel(),  # noqa: B008 (frozen dataclass)
@@ -441,10 +470,10 @@ def refine_spot(planes: Planes, guess: SpotGuess, refine: str,
                        sigma_model.chroma(guess.radius_px) if patch.from_colour else 0.0)
     if refine == "gaussian" or patch.cut:
         # a spot cut by the image border: a centroid would be pulled inwards, a symmetric
-        # model fitted to the visible pixels is not (and has no structure term: the wide
+        # model fitted to the visible pixels is not (and has no wide-window term: the wider
         # window's centroid would move inwards for any spot)
         x, y, sig = refine_gaussian(patch, guess.x, guess.y, sigma_w)
-        return x, y, math.hypot(sig, floor)
+        return x, y, math.hypot(sig, floor, cut_sigma(patch, x, y, sigma_w, sigma_model))
     x, y, sig = refine_centroid(patch, guess.x, guess.y, sigma_w)
     if not math.isfinite(sig):
         return x, y, sig
