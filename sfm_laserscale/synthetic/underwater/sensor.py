@@ -46,8 +46,8 @@ DEMOSAIC_RGGB = cv2.COLOR_BayerBG2RGB_EA
 Crop = tuple[int, int, NDArray[np.float32]]
 #: photosites beyond the recorded frame on each side (even: keeps the Bayer phase). A camera
 #: demosaics and sharpens the pixels it records with the sensor's margin around them; OpenCV
-#: demosaicing a frame by itself copies its outer pixels from their inner neighbours instead,
-#: which moved a spot within 4 px of the edge by up to 0.8 px outwards
+#: demosaicing a frame by itself fills its outer pixels from their inner neighbours instead,
+#: which moves a spot near the edge outwards (docs/DETECTION.md, "How honest the σ is")
 SENSOR_MARGIN_PX = 8
 
 
