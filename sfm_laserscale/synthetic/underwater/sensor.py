@@ -51,6 +51,15 @@ Crop = tuple[int, int, NDArray[np.float32]]
 SENSOR_MARGIN_PX = 8
 
 
+def mirrored_margin(img: NDArray[np.float32], margin_px: int) -> NDArray[np.float32]:
+    """``img`` with ``margin_px`` pixels mirrored onto each side (:data:`cv2.BORDER_REFLECT_101`:
+    an even margin keeps the Bayer phase); ``img`` itself when the margin is 0."""
+    if not margin_px:
+        return img
+    m = margin_px
+    return np.asarray(cv2.copyMakeBorder(img, m, m, m, m, cv2.BORDER_REFLECT_101), np.float32)
+
+
 @dataclass(frozen=True)
 class SensorSettings:
     """Everything the camera does to the light (see the module docstring)."""
@@ -133,9 +142,7 @@ def lens(rgb: F32, s: SensorSettings, post_psf: Sequence[Crop] = (), margin_px: 
     if s.glare_fraction > 0.0:
         m = margin_px
         frame = out[m:out.shape[0] - m, m:out.shape[1] - m]
-        glare = wide_blur(frame, 0.02 * frame.shape[1])
-        if m:
-            glare = cv2.copyMakeBorder(glare, m, m, m, m, cv2.BORDER_REFLECT_101)
+        glare = mirrored_margin(wide_blur(frame, 0.02 * frame.shape[1]), m)
         out = cv2.scaleAdd(glare, s.glare_fraction, out)
     return np.asarray(out, np.float32)
 
@@ -201,16 +208,14 @@ def expose_raw(raw: F32, s: SensorSettings, rng: np.random.Generator, margin_px:
 
     ``margin_px``: the sensor's margin around the recorded frame (even). The noise is drawn
     for the recorded frame only (the same draws with or without a margin) and mirrored into
-    the margin (:data:`cv2.BORDER_REFLECT_101` keeps the Bayer phase)."""
+    the margin (:func:`mirrored_margin`)."""
     if s.noise:
         electrons = np.maximum(raw, 0.0) * np.float32(s.full_well_e)
         sigma = np.sqrt(electrons + np.float32(s.read_noise_e ** 2))
         m = margin_px
         draws = rng.standard_normal((raw.shape[0] - 2 * m, raw.shape[1] - 2 * m),
                                     dtype=np.float32)
-        if m:
-            draws = cv2.copyMakeBorder(draws, m, m, m, m, cv2.BORDER_REFLECT_101)
-        noise = draws * sigma
+        noise = mirrored_margin(draws, m) * sigma
         raw = (electrons + noise) * np.float32(1.0 / s.full_well_e)
     levels = (1 << s.adc_bits) - 1
     code = np.rint(np.clip(raw, 0.0, 1.0) * np.float32(levels))
@@ -277,7 +282,7 @@ def capture(radiance: F32, s: SensorSettings, rng: np.random.Generator,
     frame it records (the scene mirrored there, the crops' own light where they reach it);
     the margin is cut off after sharpening."""
     m = SENSOR_MARGIN_PX
-    sensor_radiance = cv2.copyMakeBorder(radiance, m, m, m, m, cv2.BORDER_REFLECT_101)
+    sensor_radiance = mirrored_margin(radiance, m)
     lit = lens(sensor_radiance, s, [(x0 + m, y0 + m, light) for x0, y0, light in post_psf], m)
     del sensor_radiance
     raw16 = expose_raw(bayer_mosaic(lit), s, rng, margin_px=m)
