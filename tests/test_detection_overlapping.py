@@ -106,6 +106,32 @@ def test_green_cores_whose_halos_overlap_are_not_separated(
     assert _separated(monkeypatch, GREEN_PLANES, near, DetectionOptions()) == [True] * 2
 
 
+def test_a_neighbour_broader_than_the_spots_reach_is_not_removed(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    core = Measure(100.0, 100.0, "green", "bright", 1.0, radius_px=3.0, support_px=12.0)
+    blob = Measure(100.0, 117.0, "green", "colour", 1.0, radius_px=13.0, support_px=40.0)
+    # green: the core reaches 9 px, the blob 39 px; red: their windows, 12 and 40 px. The
+    # blob is broader than the core's reach either way.
+    assert _separated(monkeypatch, GREEN_PLANES, [core, blob], DetectionOptions()) == [
+        False, False]
+    assert _separated(monkeypatch, RED_PLANES, [core, blob], DetectionOptions()) == [
+        False, False]
+    narrower = Measure(100.0, 117.0, "green", "colour", 1.0, radius_px=9.0, support_px=40.0)
+    assert _separated(monkeypatch, GREEN_PLANES, [core, narrower], DetectionOptions()) == [
+        True, True]
+
+
+def test_a_bright_core_beside_a_broad_blob_keeps_its_centre() -> None:
+    """``green_all`` frame 11 (seed 0): L2, a core 45× white, has a broad green blob (half-max
+    radius 13 px) 17 px away; refined beside it, the core ended 2.97 px off."""
+    ci = list(CONDITIONS).index("green_all")
+    frame = render_frame("green_all", 1920, 1080, np.random.default_rng([0, ci, 0, 11]))
+    res = detect_spots(frame.image_rgb, parse_camera(frame.camera_spec),
+                       rig_from_dict(tomllib.loads(frame.rig_toml)), DetectionOptions())
+    spot, = (s for s in res.spots if s.laser == "L2")
+    assert math.dist((spot.x, spot.y), frame.truth["L2"]) < 0.6
+
+
 @pytest.mark.parametrize("radii", [0.0, -1.0])
 def test_the_separation_radii_are_checked(radii: float) -> None:
     with pytest.raises(InputError, match="luma_separation_radii"):
