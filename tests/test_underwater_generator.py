@@ -282,6 +282,22 @@ def test_generator_imports_nothing_from_the_rest_of_the_package() -> None:
             assert ok, f"{path.name} imports {mod}"
 
 
+def test_an_unencoded_laser_free_capture_differs_from_the_frame_by_its_jpeg_alone() -> None:
+    """``laser_free_jpeg=False``: the same frame, and a laser-free capture before JPEG, which
+    away from the lasers' light differs from the frame by the frame's compression only (a
+    few levels), where the encoded capture matches the frame exactly."""
+    frame = render_frame("red_clean", 640, 480, np.random.default_rng([3, 1]), laser_free=True,
+                         laser_free_jpeg=False)
+    encoded = render_frame("red_clean", 640, 480, np.random.default_rng([3, 1]), laser_free=True)
+    np.testing.assert_array_equal(frame.image_rgb, encoded.image_rgb)
+    raw, dark = frame.image_laser_free_rgb, encoded.image_laser_free_rgb
+    assert raw is not None and dark is not None
+    away = np.all(dark == encoded.image_rgb, axis=2)  # away from the lasers' light
+    diff = np.abs(raw.astype(int) - frame.image_rgb.astype(int))[away]
+    assert 0.3 < diff.mean() < 4.0
+    assert np.any(raw != dark)
+
+
 def test_laser_free_capture_differs_only_near_the_lasers_light() -> None:
     """The same frame without the lasers (same noise): identical away from the spots and the
     beams' glow, and each spot changes the photograph plainly (visible_levels)."""

@@ -21,7 +21,7 @@ The table of conditions is :data:`CONDITIONS` (name -> :class:`Condition`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -384,18 +384,22 @@ def _visibility(work: _Work, radiance: F32, spot_meta: dict[str, dict[str, float
 
 
 def render_frame(condition_name: str, width: int, height: int,
-                 rng: np.random.Generator, laser_free: bool = False) -> Frame:
+                 rng: np.random.Generator, laser_free: bool = False,
+                 laser_free_jpeg: bool = True) -> Frame:
     """Render one photograph of the named condition at this size (see the module docstring).
 
     Everything is drawn from ``rng``: the same generator state gives the same frame.
     ``laser_free``: also capture it without the lasers' light (same noise draws), and give each
-    spot's ``visible_levels`` (:func:`visible_levels`) in ``meta["spots"]``.
+    spot's ``visible_levels`` (:func:`visible_levels`) in ``meta["spots"]``;
+    ``laser_free_jpeg`` False leaves that capture unencoded (the camera's 8-bit output before
+    JPEG), so the frame minus it holds the lasers' light with the frame's own compression only.
     """
     work = _plan(condition_name, width, height, rng)
     radiance, settings, albedo_at = _exposed_scene(work, rng)
     crops, spot_meta = spot_crops(work.cond, work.cam, work.lay, work.wat, albedo_at, settings, rng)
     truth = _visibility(work, radiance, spot_meta)
-    dark = (sensor.capture(radiance.copy(), settings, _same_draws(rng), ())
+    dark_settings = settings if laser_free_jpeg else replace(settings, jpeg=False)
+    dark = (sensor.capture(radiance.copy(), dark_settings, _same_draws(rng), ())
             if laser_free else None)
     image = sensor.capture(radiance, settings, rng, crops)
     del radiance

@@ -1,0 +1,191 @@
+"""How accurate a spot centre can be on the physical benchmark's photographs, with the scene
+known exactly.
+
+Usage::
+
+    python scripts/bench_centre_floor.py [--per-condition 20] [--size 1920x1080]
+        [--conditions red_clean,faint_far,...] [--seed 0] [--workers 2] [--markdown]
+
+Every frame of ``sfm_laserscale.synthetic.underwater`` (the same generators as
+``bench_detection_physical.py --sizes WxH``: seed, condition index, 0, image index) is also
+captured without the lasers, with the same noise draws and without JPEG
+(``render_frame(..., laser_free=True, laser_free_jpeg=False)``). The frame minus that capture,
+decoded with the sRGB curve and its channels summed, is the lasers' light with the camera's
+demosaicing, sharpening, colour processing and the frame's own JPEG 4:2:0, the light's shot
+noise, and no scene: what a detector would have to work with if it knew the scene exactly.
+
+Two estimators are started at the true centre and run on it: a Gaussian-windowed centroid
+(window σ 1.5 σ_spot + 0.5 px, iterated to its fixed point) and a least-squares fit of a
+pixel-integrated 2D Gaussian plus a constant. Their errors are a floor that a detector, which
+must also tell the light from the scene, is not expected to beat; they are no proof of a bound
+(a better model of the camera's processing could do better). Spots within 12 px of the border
+are left out. No code of ``sfm_laserscale.detection`` is used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import multiprocessing
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+from scipy.special import erf
+
+from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
+
+F64 = NDArray[np.float64]
+#: spots nearer the border than this (px) are left out
+BORDER_PX = 12
+
+
+@dataclass(frozen=True)
+class Job:
+    """One frame: condition, size (width, height), seed, image index."""
+
+    condition: str
+    size: tuple[int, int]
+    seed: int
+    index: int
+
+
+def srgb_to_linear(rgb8: NDArray[np.uint8]) -> F64:
+    """8-bit sRGB -> linear (0-1)."""
+    a = rgb8.astype(np.float64) / 255.0
+    return np.asarray(np.where(a <= 0.04045, a / 12.92, ((a + 0.055) / 1.055) ** 2.4))
+
+
+def windowed_centroid(light: F64, xy: tuple[float, float], window_px: float) -> tuple[float, float]:
+    """Fixed point of the Gaussian-windowed centroid of ``light`` (H, W; COLMAP pixel centres
+    at +0.5) started at ``xy``."""
+    gy, gx = np.mgrid[0:light.shape[0], 0:light.shape[1]].astype(np.float64) + 0.5
+    w_light = np.clip(light, 0.0, None)
+    x, y = xy
+    for _ in range(200):
+        w = np.exp(-0.5 * ((gx - x) ** 2 + (gy - y) ** 2) / window_px ** 2) * w_light
+        total = float(w.sum())
+        if total <= 0.0:
+            return math.nan, math.nan
+        nx, ny = float((w * gx).sum()) / total, float((w * gy).sum()) / total
+        if math.hypot(nx - x, ny - y) < 1e-7:
+            break
+        x, y = x + 0.7 * (nx - x), y + 0.7 * (ny - y)
+    return x, y
+
+
+def gaussian_fit(light: F64, xy: tuple[float, float], sigma_px: float) -> tuple[float, float]:
+    """Centre of a least-squares pixel-integrated 2D Gaussian plus a constant fitted to
+    ``light`` (H, W), started at ``xy`` with width ``sigma_px``."""
+    gy, gx = np.mgrid[0:light.shape[0], 0:light.shape[1]].astype(np.float64) + 0.5
+
+    def residual(p: F64) -> F64:
+        amp, cx, cy, sig, base = p
+        k = 1.0 / (math.sqrt(2.0) * max(abs(sig), 1e-3))
+        ix = 0.5 * (erf((gx + 0.5 - cx) * k) - erf((gx - 0.5 - cx) * k))
+        iy = 0.5 * (erf((gy + 0.5 - cy) * k) - erf((gy - 0.5 - cy) * k))
+        return np.asarray((amp * ix * iy + base - light).ravel())
+
+    start = np.array([float(light.max()) * 2.0 * math.pi * sigma_px ** 2, xy[0], xy[1],
+                      sigma_px, 0.0])
+    fit = least_squares(residual, start)
+    return float(fit.x[1]), float(fit.x[2])
+
+
+def spot_errors(light: F64, truth: tuple[float, float], sigma_px: float
+                ) -> tuple[float, float] | None:
+    """(centroid error, fit error) px of one spot on the laser-only ``light`` (H, W), or None
+    near the border."""
+    height, width = light.shape
+    x0, y0 = int(truth[0]), int(truth[1])
+    reach = max(10, math.ceil(6.0 * sigma_px))
+    if not (max(reach, BORDER_PX) <= x0 < width - max(reach, BORDER_PX)
+            and max(reach, BORDER_PX) <= y0 < height - max(reach, BORDER_PX)):
+        return None
+    crop = light[y0 - reach:y0 + reach + 1, x0 - reach:x0 + reach + 1]
+    local = (truth[0] - (x0 - reach), truth[1] - (y0 - reach))
+    cx, cy = windowed_centroid(crop, local, 1.5 * sigma_px + 0.5)
+    half = max(4, math.ceil(4.0 * sigma_px))
+    inner = crop[reach - half:reach + half + 1, reach - half:reach + half + 1]
+    fx, fy = gaussian_fit(inner, (local[0] - (reach - half), local[1] - (reach - half)), sigma_px)
+    return (math.hypot(cx - local[0], cy - local[1]),
+            math.hypot(fx + (reach - half) - local[0], fy + (reach - half) - local[1]))
+
+
+def run_job(job: Job) -> list[tuple[float, float]]:
+    """Both estimators' errors (px) for every spot of one frame."""
+    ci = list(CONDITIONS).index(job.condition)
+    frame = render_frame(job.condition, job.size[0], job.size[1],
+                         np.random.default_rng([job.seed, ci, 0, job.index]),
+                         laser_free=True, laser_free_jpeg=False)
+    if frame.image_laser_free_rgb is None:
+        raise RuntimeError("the generator gave no laser-free capture")
+    light = (srgb_to_linear(frame.image_rgb)
+             - srgb_to_linear(frame.image_laser_free_rgb)).sum(axis=2)
+    out = []
+    for name, truth in frame.truth.items():
+        if truth is None:
+            continue
+        sigma = max(float(frame.meta["spots"][name]["sigma_major_px"]), 0.5)
+        errs = spot_errors(light, (float(truth[0]), float(truth[1])), sigma)
+        if errs is not None:
+            out.append(errs)
+    return out
+
+
+def summary_rows(jobs: Sequence[Job], results: Sequence[list[tuple[float, float]]]
+                 ) -> list[tuple[str, int, float, float, float, float]]:
+    """Per condition: (condition, spots, centroid median, p95, fit median, p95) px."""
+    rows = []
+    for cond in dict.fromkeys(j.condition for j in jobs):
+        errs = np.array([e for j, r in zip(jobs, results, strict=True) if j.condition == cond
+                         for e in r]).reshape(-1, 2)
+        if len(errs) == 0:
+            continue
+        med, p95 = np.median(errs, axis=0), np.percentile(errs, 95, axis=0)
+        rows.append((cond, len(errs), float(med[0]), float(p95[0]), float(med[1]),
+                     float(p95[1])))
+    return rows
+
+
+def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--per-condition", type=int, default=20)
+    ap.add_argument("--size", default="1920x1080")
+    ap.add_argument("--conditions", default=None)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--markdown", action="store_true")
+    return ap.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parse(argv)
+    width, height = (int(v) for v in args.size.lower().split("x"))
+    conds = (args.conditions.split(",") if args.conditions else
+             [c for c in CONDITIONS if c != "no_lasers"])
+    unknown = [c for c in conds if c not in CONDITIONS]
+    if unknown:
+        print(f"unknown conditions: {', '.join(unknown)}", file=sys.stderr)
+        return 2
+    jobs = [Job(c, (width, height), args.seed, i) for c in conds
+            for i in range(args.per_condition)]
+    with multiprocessing.Pool(max(1, args.workers)) as pool:
+        results = pool.map(run_job, jobs, chunksize=1)
+    rows = summary_rows(jobs, results)
+    if args.markdown:
+        print("| condition | spots | centroid median / p95 px | Gaussian fit median / p95 px |")
+        print("|---|---|---|---|")
+    for cond, n, cm, cp, fm, fp in rows:
+        if args.markdown:
+            print(f"| {cond} | {n} | {cm:.3f} / {cp:.3f} | {fm:.3f} / {fp:.3f} |")
+        else:
+            print(f"{cond:18s} {n:4d} centroid {cm:.3f} / {cp:.3f}  fit {fm:.3f} / {fp:.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
