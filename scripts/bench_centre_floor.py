@@ -15,7 +15,8 @@ demosaicing, sharpening, colour processing and the frame's own JPEG 4:2:0, the l
 noise, and no scene: what a detector would have to work with if it knew the scene exactly.
 
 Two estimators are started at the true centre and run on it: a Gaussian-windowed centroid
-(window σ 1.5 σ_spot + 0.5 px, iterated to its fixed point) and a least-squares fit of a
+(window σ 1.5 σ_spot + 0.5 px, σ_spot the footprint's, the PSF's and any motion or defocus
+blur's in quadrature, iterated to its fixed point) and a least-squares fit of a
 pixel-integrated 2D Gaussian plus a constant. Their errors are a floor that a detector, which
 must also tell the light from the scene, is not expected to beat; they are no proof of a bound
 (a better model of the camera's processing could do better). Spots within 12 px of the border
@@ -30,6 +31,7 @@ import multiprocessing
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -115,6 +117,16 @@ def spot_errors(light: F64, truth: tuple[float, float], sigma_px: float
             math.hypot(fx + (reach - half) - local[0], fy + (reach - half) - local[1]))
 
 
+def image_sigma_px(meta: dict[str, Any], footprint_sigma_px: float) -> float:
+    """The spot's σ (px) in the image: its footprint's, the lens PSF's, a motion blur's
+    (a segment of length L: L/√12) and a defocus disc's (radius R: R/2), in quadrature; at
+    least 0.5 px."""
+    var = (footprint_sigma_px ** 2 + float(meta.get("psf_sigma_px", 0.0)) ** 2
+           + float(meta.get("motion_px", 0.0)) ** 2 / 12.0
+           + (float(meta.get("defocus_radius_px", 0.0)) / 2.0) ** 2)
+    return max(math.sqrt(var), 0.5)
+
+
 def run_job(job: Job) -> list[tuple[float, float]]:
     """Both estimators' errors (px) for every spot of one frame."""
     ci = list(CONDITIONS).index(job.condition)
@@ -129,7 +141,7 @@ def run_job(job: Job) -> list[tuple[float, float]]:
     for name, truth in frame.truth.items():
         if truth is None:
             continue
-        sigma = max(float(frame.meta["spots"][name]["sigma_major_px"]), 0.5)
+        sigma = image_sigma_px(frame.meta, float(frame.meta["spots"][name]["sigma_major_px"]))
         errs = spot_errors(light, (float(truth[0]), float(truth[1])), sigma)
         if errs is not None:
             out.append(errs)

@@ -51,3 +51,9 @@ def test_one_frame_gives_errors_near_its_spots() -> None:
 def test_an_unknown_condition_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert floor.main(["--conditions", "red_clean,nope", "--per-condition", "1"]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_the_image_sigma_adds_the_blurs_in_quadrature() -> None:
+    meta = {"psf_sigma_px": 0.3, "motion_px": 12.0 ** 0.5 * 0.4, "defocus_radius_px": 2.0}
+    assert floor.image_sigma_px(meta, 0.0) == pytest.approx(math.sqrt(0.09 + 0.16 + 1.0))
+    assert floor.image_sigma_px({}, 0.2) == 0.5
