@@ -385,7 +385,7 @@ def separate_overlapping(planes: Planes, valid: list[Measure], options: Detectio
     support = [m.guess().patch_support for m in valid]
     reach = overlap_reach(planes, valid, options)
     groups = {i: [j for j, o in enumerate(valid) if j != i
-                  and max(o.radius_px - reach[i], m.radius_px - reach[j]) <= 0.0
+                  and o.radius_px <= reach[i] and m.radius_px <= reach[j]
                   and math.hypot(o.x - m.x, o.y - m.y) < reach[i] + reach[j]]
               for i, m in enumerate(valid)}
     if not any(groups.values()):
