@@ -111,12 +111,15 @@ def test_a_neighbour_broader_than_the_spots_reach_is_not_removed(
     core = Measure(100.0, 100.0, "green", "bright", 1.0, radius_px=3.0, support_px=12.0)
     blob = Measure(100.0, 117.0, "green", "colour", 1.0, radius_px=13.0, support_px=40.0)
     # green: the core reaches 9 px, the blob 39 px; red: their windows, 12 and 40 px. The
-    # blob is broader than the core's reach either way.
+    # blob is broader than the core's reach either way: the core keeps it, the blob has the
+    # core removed.
     assert _separated(monkeypatch, GREEN_PLANES, [core, blob], DetectionOptions()) == [
-        False, False]
+        False, True]
+    core.beside = blob.beside = False
     assert _separated(monkeypatch, RED_PLANES, [core, blob], DetectionOptions()) == [
-        False, False]
+        False, True]
     narrower = Measure(100.0, 117.0, "green", "colour", 1.0, radius_px=9.0, support_px=40.0)
+    core.beside = False
     assert _separated(monkeypatch, GREEN_PLANES, [core, narrower], DetectionOptions()) == [
         True, True]
 

@@ -377,32 +377,32 @@ def separate_overlapping(planes: Planes, valid: list[Measure], options: Detectio
     Alternating rounds; the rounds together move a spot at most max(2, radius) px from its
     measured centre.
 
-    Two candidates do not overlap when one's half-maximum radius exceeds the other's whole
-    reach: the broad one's light is smooth across the other's window, where the plane fitted
-    on its ring takes it, and its model, read on its far side, holds the other's halo (a broad
-    green blob 17 px from a core 45× white moved the core 2.6 px off).
+    A spot does not have a neighbour removed whose half-maximum radius exceeds the spot's whole
+    reach: that light is smooth across the spot's window, where the plane fitted on its ring
+    takes it, and its model, read on its far side, holds the spot's own halo (a broad green
+    blob 17 px from a core 45× white moved the core 2.6 px off). The broad one still has the
+    compact one removed.
     """
     support = [m.guess().patch_support for m in valid]
     reach = overlap_reach(planes, valid, options)
-    groups = {i: [j for j, o in enumerate(valid) if j != i
-                  and o.radius_px <= reach[i] and m.radius_px <= reach[j]
-                  and math.hypot(o.x - m.x, o.y - m.y) < reach[i] + reach[j]]
-              for i, m in enumerate(valid)}
-    if not any(groups.values()):
+    removed = {i: [j for j, o in enumerate(valid) if j != i and o.radius_px <= reach[i]
+                   and math.hypot(o.x - m.x, o.y - m.y) < reach[i] + reach[j]]
+               for i, m in enumerate(valid)}
+    if not any(removed.values()):
         return
     start = [(m.x, m.y) for m in valid]
     models: dict[tuple[int, int], NeighbourModel] = {}  # (spot, for whom) -> model
     for _ in range(rounds):
         fresh: dict[tuple[int, int], NeighbourModel] = {}
-        for j, nbs in groups.items():  # model of spot j as seen by each neighbour i
-            o = valid[j]
-            for i in nbs:
-                others = tuple(models[(k, j)] for k in groups[j] if (k, j) in models)
+        for i, nbs in removed.items():  # the model of each neighbour j as spot i sees it
+            for j in nbs:
+                o = valid[j]
+                others = tuple(models[(k, j)] for k in removed[j] if (k, j) in models)
                 p = spot_patch(planes, o.guess(), support[j], others, allow_luma=False)
                 if p is not None:
                     fresh[(j, i)] = neighbour_model(p, o.x, o.y, (valid[i].x, valid[i].y))
         models = fresh
-        for i, nbs in groups.items():
+        for i, nbs in removed.items():
             m = valid[i]
             mine = tuple(models[(j, i)] for j in nbs if (j, i) in models)
             if not mine:
