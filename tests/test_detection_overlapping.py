@@ -12,7 +12,9 @@ blue spots whose refinement windows overlap; a green (luma-dominant) laser's spo
 their cores are within ``luma_separation_radii`` half-maximum radii, since a spot refined
 beside a neighbour loses luma. Physical frames of the independent generator: clipped green
 cores 40–180 px apart, whose supports hold their forward-scatter halos, were refined beside
-each other and ended ~1 px off.
+each other and ended ~1 px off. A spot keeps a neighbour whose half-maximum radius exceeds
+its own reach (its light is smooth across the spot's window); the broad one still has the
+compact one removed.
 """
 
 from __future__ import annotations
@@ -125,8 +127,9 @@ def test_a_neighbour_broader_than_the_spots_reach_is_not_removed(
 
 
 def test_a_bright_core_beside_a_broad_blob_keeps_its_centre() -> None:
-    """``green_all`` frame 11 (seed 0): L2, a core 45× white, has a broad green blob (half-max
-    radius 13 px) 17 px away; refined beside it, the core ended 2.97 px off."""
+    """``green_all`` frame 11 (seed 0): L2, a core 45× white, has its beam's glow in the water
+    17 px in front of it (a maximum of half-max radius 13 px on the beam's line); refined
+    beside it, the core ended 2.97 px off."""
     ci = list(CONDITIONS).index("green_all")
     frame = render_frame("green_all", 1920, 1080, np.random.default_rng([0, ci, 0, 11]))
     res = detect_spots(frame.image_rgb, parse_camera(frame.camera_spec),

@@ -352,7 +352,8 @@ def _better_of_the_two(out: list[Measure], m: Measure, rc: tuple[int, int], plan
 def overlap_reach(planes: Planes, valid: list[Measure], options: DetectionOptions
                   ) -> list[float]:
     """Per candidate, its reach (px): two candidates overlap when their centres lie closer
-    than their reaches summed.
+    than their reaches summed (a spot has a neighbour removed only when the neighbour's
+    half-maximum radius is within its own reach, :func:`separate_overlapping`).
 
     A spot refined beside its neighbours is read on the texture-free light alone, without
     luma (:mod:`.refine`, :mod:`.centre`). For red and blue lasers that is their signal anyway,
@@ -379,8 +380,9 @@ def separate_overlapping(planes: Planes, valid: list[Measure], options: Detectio
 
     A spot does not have a neighbour removed whose half-maximum radius exceeds the spot's whole
     reach: that light is smooth across the spot's window, where the plane fitted on its ring
-    takes it, and its model, read on its far side, holds the spot's own halo (a broad green
-    blob 17 px from a core 45× white moved the core 2.6 px off). The broad one still has the
+    takes it, and its model, read on its far side, holds the spot's own halo (the beam's glow
+    in the water, a maximum of half-maximum radius 13 px 17 px in front of a core 45× white,
+    moved the core 2.6 px off). The broad one still has the
     compact one removed.
     """
     support = [m.guess().patch_support for m in valid]
