@@ -39,6 +39,7 @@ from scipy.optimize import least_squares
 from scipy.special import erf
 
 from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
+from sfm_laserscale.synthetic.underwater.sensor import srgb_decode
 
 F64 = NDArray[np.float64]
 #: spots nearer the border than this (px) are left out
@@ -53,12 +54,6 @@ class Job:
     size: tuple[int, int]
     seed: int
     index: int
-
-
-def srgb_to_linear(rgb8: NDArray[np.uint8]) -> F64:
-    """8-bit sRGB -> linear (0-1)."""
-    a = rgb8.astype(np.float64) / 255.0
-    return np.asarray(np.where(a <= 0.04045, a / 12.92, ((a + 0.055) / 1.055) ** 2.4))
 
 
 def windowed_centroid(light: F64, xy: tuple[float, float], window_px: float) -> tuple[float, float]:
@@ -135,8 +130,8 @@ def run_job(job: Job) -> list[tuple[float, float]]:
                          laser_free=True, laser_free_jpeg=False)
     if frame.image_laser_free_rgb is None:
         raise RuntimeError("the generator gave no laser-free capture")
-    light = (srgb_to_linear(frame.image_rgb)
-             - srgb_to_linear(frame.image_laser_free_rgb)).sum(axis=2)
+    light = (srgb_decode(frame.image_rgb / 255.0)
+             - srgb_decode(frame.image_laser_free_rgb / 255.0)).sum(axis=2)
     out = []
     for name, truth in frame.truth.items():
         if truth is None:

@@ -315,3 +315,9 @@ def test_laser_free_capture_differs_only_near_the_lasers_light() -> None:
         assert frame.meta["spots"][name]["visible_levels"] >= 20
         col, row = int(xy[0]), int(xy[1])
         assert not same[row, col]
+
+
+def test_srgb_decode_inverts_srgb_encode() -> None:
+    from sfm_laserscale.synthetic.underwater.sensor import srgb_decode, srgb_encode
+    lin = np.linspace(0.0, 1.0, 101, dtype=np.float32)
+    np.testing.assert_allclose(srgb_decode(srgb_encode(lin)), lin, atol=1e-6)

@@ -382,8 +382,7 @@ def separate_overlapping(planes: Planes, valid: list[Measure], options: Detectio
     reach: that light is smooth across the spot's window, where the plane fitted on its ring
     takes it, and its model, read on its far side, holds the spot's own halo (the beam's glow
     in the water, a maximum of half-maximum radius 13 px 17 px in front of a core 45× white,
-    moved the core 2.6 px off). The broad one still has the
-    compact one removed.
+    moved the core 2.6 px off). The broad one still has the compact one removed.
     """
     support = [m.guess().patch_support for m in valid]
     reach = overlap_reach(planes, valid, options)

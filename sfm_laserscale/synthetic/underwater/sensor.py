@@ -229,6 +229,12 @@ def srgb_encode(lin: F32) -> F32:
                     1.055 * np.power(lin, 1.0 / 2.4) - 0.055).astype(np.float32)
 
 
+def srgb_decode(enc: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Inverse of :func:`srgb_encode` (encoded [0, 1] -> linear [0, 1]), in float64."""
+    enc = np.clip(np.asarray(enc, np.float64), 0.0, 1.0)
+    return np.asarray(np.where(enc <= 0.04045, enc / 12.92, ((enc + 0.055) / 1.055) ** 2.4))
+
+
 def _transfer_lut(tone: float) -> F32:
     """(65536,) sRGB curve then tone S-curve, on linear values i / 65535."""
     enc = srgb_encode(np.linspace(0.0, 1.0, 65536, dtype=np.float32))
