@@ -4,6 +4,7 @@ along a beam, agreement of the spots' ranges, and the reasons a laser has no spo
 from __future__ import annotations
 
 import math
+import tomllib
 
 import numpy as np
 import pytest
@@ -311,3 +312,43 @@ def test_a_spot_on_a_bright_patch_is_measured_against_the_patch_at_the_expected_
     row, col = np.unravel_index(np.argmax(flat[50:70, 50:70]), (20, 20))
     blob = local_shape(flat, int(row) + 50, int(col) + 50, 1.5)
     assert blob is None or blob.snr < 5.0
+
+
+def test_an_elongated_clipped_core_is_read_on_its_outline() -> None:
+    """The rim of a clipped core lies beyond the circle through its farthest clipped pixel; with
+    ``outline``, an elongated core's rim lies RIM_START to RIM_START + RIM_WIDTH px from its
+    nearest clipped pixel instead (beside its long sides, where the circle is in the background),
+    and a round core's stays the circle."""
+    from sfm_laserscale.detection.score import RIM_START, RIM_WIDTH, _spot_zones
+
+    yy, xx = np.mgrid[0:41, 0:41] + 0.5
+    rr = np.hypot(xx - 20.5, yy - 20.5)
+    streak = (np.abs(xx - 20.5) <= 3.0) & (np.abs(yy - 20.5) <= 0.5)  # 7 × 1 px
+    circle, ring = _spot_zones(streak, rr, 3.0, 10.0)
+    rim, ring_outline = _spot_zones(streak, rr, 3.0, 10.0, outline=True)
+    np.testing.assert_array_equal(ring, ring_outline)
+    beside = (np.abs(xx - 20.5) <= 1.0) & (np.abs(yy - 20.5) >= 1.0) & (np.abs(yy - 20.5) <= 3.0)
+    assert rim[beside].all() and not circle[beside].any()
+    away = np.hypot(np.abs(xx - 20.5) - np.minimum(np.abs(xx - 20.5), 3.0), yy - 20.5)
+    assert np.all((away[rim] >= RIM_START) & (away[rim] <= RIM_START + RIM_WIDTH))
+    disc = rr <= 2.0
+    round_rim, _ = _spot_zones(disc, rr, 2.0, 10.0, outline=True)
+    np.testing.assert_array_equal(round_rim, _spot_zones(disc, rr, 2.0, 10.0)[0])
+
+
+def test_a_white_glint_streak_in_a_laser_free_frame_is_not_taken_for_a_spot() -> None:
+    """Laser-free ``no_lasers`` frame 17 at 4000 × 3000 (size index 1; rendered by the
+    independent generator): a white glint clipped over a 7 × 4 px streak lies 8 px from L4's
+    beam. The circle through its farthest clipped pixel read no light (no evidence: colour 1)
+    and L4 took it, and L2 a whitened core at its range. Read on its outline, it is white."""
+    from sfm_laserscale.commands.detect import parse_camera
+    from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
+
+    ci = list(CONDITIONS).index("no_lasers")
+    frame = render_frame("no_lasers", 4000, 3000, np.random.default_rng([0, ci, 1, 17]))
+    res = detect_spots(frame.image_rgb, parse_camera(frame.camera_spec),
+                       rig_from_dict(tomllib.loads(frame.rig_toml)))
+    assert res.spots == ()
+    glint = [c for c in res.candidates
+             if c.source == "bright" and math.dist((c.x, c.y), (2438.4, 809.0)) < 1.0]
+    assert glint and dict(glint[0].evidence)["colour"] < 0.1

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 
 from sfm_laserscale.detection.refine import grid, window
 from sfm_laserscale.detection.response import Channels
@@ -38,6 +39,9 @@ MIN_COLOUR_SNR = 3.0
 RIM_START = 0.5
 #: … over this width (px)
 RIM_WIDTH = 2.5
+#: a clipped core is elongated (a glint, a streak) when its farthest pixel lies beyond this
+#: many times the radius of a disc of its area
+ELONGATED_CORE = 1.25
 #: angular sectors of a spot whose median added light is its colour
 SECTORS = 8
 #: laser-coloured share of the added light at which the colour term is ½
@@ -72,14 +76,17 @@ class AddedLight:
     noise: F64
 
 
-def _spot_zones(clipped_laser: NDArray[np.bool_], rr: F64, radius: float, support: float
-                ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+def _spot_zones(clipped_laser: NDArray[np.bool_], rr: F64, radius: float, support: float,
+                outline: bool = False) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """(inner, ring) masks of the window where a spot's colour and its background are measured.
 
     An unclipped spot: inner within ``max(2, radius) + 2`` px, ring beyond the support. A spot
     whose laser channel clips: its colour is read on the rim of the clipped core (RIM_START to
-    RIM_START + RIM_WIDTH px beyond it), where its light falls through the channels' range (a
-    small spot's own light is gone a few pixels further out), and the ring lies beyond that.
+    RIM_START + RIM_WIDTH px beyond the circle through its farthest clipped pixel), where its
+    light falls through the channels' range (a small spot's own light is gone a few pixels
+    further out), and the ring lies beyond that. With ``outline``, an elongated core's rim
+    (ELONGATED_CORE) lies that far from its nearest clipped pixel instead: the circle through
+    the tip of a streak passes its sides in the background.
     """
     core = clipped_laser & (rr <= max(2.0, radius) + 1.0)
     if not core.any():
@@ -88,14 +95,18 @@ def _spot_zones(clipped_laser: NDArray[np.bool_], rr: F64, radius: float, suppor
     r_clip = float(rr[core].max())
     start = r_clip + RIM_START
     stop = start + RIM_WIDTH
-    return (rr >= start) & (rr <= stop), (rr >= max(stop + 1.0, support))
+    ring = rr >= max(stop + 1.0, support)
+    if outline and r_clip > ELONGATED_CORE * math.sqrt(float(core.sum()) / math.pi):
+        beyond = ndimage.distance_transform_edt(~core)  # px to the nearest clipped pixel
+        return (beyond >= RIM_START) & (beyond <= RIM_START + RIM_WIDTH), ring
+    return (rr >= start) & (rr <= stop), ring
 
 
 def added_light(channels: Channels, clipped_laser: NDArray[np.bool_],
                 clipped_any: NDArray[np.bool_], x: float, y: float, radius: float,
-                support: float) -> AddedLight | None:
+                support: float, outline: bool = False) -> AddedLight | None:
     """The light added by a candidate at (x, y) (crop COLMAP px); None when too few pixels are
-    usable.
+    usable (``outline``: see :func:`_spot_zones`).
 
     Per channel, the light of the spot's unclipped pixels (:func:`_spot_zones`) above a plane
     fitted on its ring, averaged in SECTORS angular sectors and the median of those taken: a
@@ -106,7 +117,7 @@ def added_light(channels: Channels, clipped_laser: NDArray[np.bool_],
     gx, gy = grid(win)
     rr = np.hypot(gx - x, gy - y)
     ok = ~clipped_any[win]
-    inner, ring = _spot_zones(clipped_laser[win], rr, radius, support)
+    inner, ring = _spot_zones(clipped_laser[win], rr, radius, support, outline)
     inner &= ok
     ring &= ok & (rr <= reach)
     if inner.sum() < MIN_COLOUR_PIXELS or ring.sum() < 2 * MIN_COLOUR_PIXELS:
@@ -163,15 +174,24 @@ def colour_around(channels: Channels, clipped_laser: NDArray[np.bool_],
     A small spot's zones hold a few dozen pixels; which of them fall inside changes with a
     centre moved by a tenth of a pixel (a refinement's detail), and one reading with them,
     from ~0 to 1: the median of five readings does not hinge on one.
+
+    A clipped core whose rim reads no light at all (no evidence: term 1) is read again on its
+    outline when it is elongated (:func:`_spot_zones`): the circle through the tip of a white
+    glint's streak lies in the background on its sides, where the outline reads its white light.
     """
     x, y = xy
     offsets = ((0.0, 0.0), (COLOUR_JITTER_PX, 0.0), (-COLOUR_JITTER_PX, 0.0),
                (0.0, COLOUR_JITTER_PX), (0.0, -COLOUR_JITTER_PX))
-    readings = sorted((colour_evidence(added_light(channels, clipped_laser, clipped_any, x + dx,
-                                                   y + dy, size[0], size[1]),
-                                       channel, tau, clipped) for dx, dy in offsets),
-                      key=lambda e: e.term)
-    return readings[len(readings) // 2]
+
+    def median_reading(outline: bool) -> ColourEvidence:
+        readings = sorted((colour_evidence(added_light(channels, clipped_laser, clipped_any,
+                                                       x + dx, y + dy, size[0], size[1], outline),
+                                           channel, tau, clipped) for dx, dy in offsets),
+                          key=lambda e: e.term)
+        return readings[len(readings) // 2]
+
+    reading = median_reading(outline=False)
+    return reading if reading.measured or not clipped else median_reading(outline=True)
 
 
 def _against(fraction: float, tau: float) -> float:
