@@ -99,8 +99,8 @@ def spot_errors(light: F64, truth: tuple[float, float], sigma_px: float
     height, width = light.shape
     x0, y0 = int(truth[0]), int(truth[1])
     reach = max(10, math.ceil(6.0 * sigma_px))
-    if not (max(reach, BORDER_PX) <= x0 < width - max(reach, BORDER_PX)
-            and max(reach, BORDER_PX) <= y0 < height - max(reach, BORDER_PX)):
+    margin = max(reach, BORDER_PX)
+    if not (margin <= x0 < width - margin and margin <= y0 < height - margin):
         return None
     crop = light[y0 - reach:y0 + reach + 1, x0 - reach:x0 + reach + 1]
     local = (truth[0] - (x0 - reach), truth[1] - (y0 - reach))
