@@ -1,4 +1,5 @@
-"""The reported centre of a green (luma-dominant) laser's spot, from both of its signals.
+"""The reported centre of a chosen spot: a green laser's from both of its signals, an unclipped
+spot's from a Gaussian fit where it agrees with the centroid.
 
 A luma-dominant laser's spot can be refined on two signals (:mod:`.refine`): its light freed of
 the scene's texture by colour, and luma. Each fails in its own way. The texture-free light
@@ -19,6 +20,18 @@ a clipped core's crosstalk pixels inflate; once a laser's spot is chosen,
 Either way its σ gains (disagreement_gain · d)², d the distance between the two centres
 (:class:`~sfm_laserscale.detection.options.SigmaModel`). Measured in docs/DETECTION.md
 ("Two signals").
+
+Then :func:`polish_with_fit` fits a 2D Gaussian plus a constant to an unclipped chosen spot
+(:func:`fit_centre`, on the signal and window it was refined on). The centroid's Gaussian
+window is the spot's measured half-maximum radius; where noise or the beam's glow widened that
+measure (a faint spot), the window weights pixels that hold more noise than light, while the
+fit's width is free. So the fit's centre is taken where the window is WIDE_WINDOW times the
+fitted σ or more: with a window of the right size the two estimators are equally precise,
+with a wider one the fit is the more precise (tests/test_detection_fit_centre.py). A fit can
+also follow something beside the spot (a texture edge, a neighbour's flank) where the
+centroid's fixed point does not, so it is taken only within ``fit_agree_sigmas`` of the spot's
+σ from the centroid, and the σ stays the centroid's. Clipped cores keep the centroid: a fit to
+their flanks alone was measured less accurate (docs/DETECTION.md, the sixteenth round).
 """
 
 from __future__ import annotations
@@ -30,7 +43,14 @@ from numpy.typing import NDArray
 
 from sfm_laserscale.detection.candidates import Measure
 from sfm_laserscale.detection.options import DetectionOptions, SigmaModel
-from sfm_laserscale.detection.refine import SpotGuess, luma_dominant, refine_spot, window
+from sfm_laserscale.detection.refine import (
+    SpotGuess,
+    gaussian_fit,
+    luma_dominant,
+    refine_spot,
+    spot_patch,
+    window,
+)
 from sfm_laserscale.detection.response import Planes, crop_channels, make_planes
 
 #: two centres of one spot agree when they lie within this many of their σ combined …
@@ -38,6 +58,10 @@ TWO_SIGNALS_AGREE = 4.0
 #: … and within this many pixels (farther apart, one is off by half of it or more, whatever
 #: the σ say)
 TWO_SIGNALS_MAX_APART_PX = 1.0
+#: an unclipped spot takes its Gaussian fit's centre only where the centroid's window σ (its
+#: half-maximum radius, at least 1 px) is at least this many times the fitted σ: a window
+#: wider than the spot weights pixels that hold more noise than light
+WIDE_WINDOW = 1.25
 #: pixels of background around a spot's support in the crop it is centred in
 MARGIN_PX = 12
 
@@ -70,6 +94,21 @@ def two_signal_centre(planes: Planes, guess: SpotGuess, refine: str, sigma_model
             math.hypot(min(sa, sb), spread))
 
 
+def _local_planes(image_rgb: NDArray[np.uint8], m: Measure,
+                  laser_rgb: tuple[float, float, float], options: DetectionOptions,
+                  max_radius: float) -> tuple[Planes, SpotGuess, int, int]:
+    """The planes of a crop around a chosen spot (its support and MARGIN_PX), the spot as a
+    guess in that crop, and the crop's corner (x0, y0) in image px."""
+    rows, cols = window(image_rgb.shape, int(math.floor(m.y)), int(math.floor(m.x)),
+                        int(math.ceil(m.guess().patch_support)) + MARGIN_PX)
+    x0, y0 = cols.start, rows.start
+    planes = make_planes(crop_channels(image_rgb, (x0, y0, cols.stop, rows.stop),
+                                       options.input_gamma), m.color, options, max_radius,
+                         laser_rgb)
+    guess = SpotGuess(m.x - x0, m.y - y0, m.radius_px, m.support_px, m.bright)
+    return planes, guess, x0, y0
+
+
 def centre_on_both(image_rgb: NDArray[np.uint8], m: Measure,
                    laser_rgb: tuple[float, float, float],
                    options: DetectionOptions, max_radius: float) -> None:
@@ -79,13 +118,42 @@ def centre_on_both(image_rgb: NDArray[np.uint8], m: Measure,
     (their neighbour's light removed), keep theirs."""
     if not (options.two_signal_centre and luma_dominant(np.asarray(laser_rgb))) or m.beside:
         return
-    rows, cols = window(image_rgb.shape, int(math.floor(m.y)), int(math.floor(m.x)),
-                        int(math.ceil(m.guess().patch_support)) + MARGIN_PX)
-    x0, y0 = cols.start, rows.start
-    planes = make_planes(crop_channels(image_rgb, (x0, y0, cols.stop, rows.stop),
-                                       options.input_gamma), m.color, options, max_radius,
-                         laser_rgb)
-    guess = SpotGuess(m.x - x0, m.y - y0, m.radius_px, m.support_px, m.bright)
+    planes, guess, x0, y0 = _local_planes(image_rgb, m, laser_rgb, options, max_radius)
     x, y, sigma = two_signal_centre(planes, guess, options.refine, options.sigma_model,
                                     (m.x - x0, m.y - y0, m.sigma_px))
     m.x, m.y, m.sigma_px = x + x0, y + y0, sigma
+
+
+def fit_centre(planes: Planes, guess: SpotGuess, chosen: Centre, agree_sigmas: float
+               ) -> Centre:
+    """An unclipped spot's centre from a 2D Gaussian fit (:func:`.refine.gaussian_fit`, on the
+    signal and window of :func:`.refine.spot_patch`) started at ``chosen`` (x, y, σ; crop
+    COLMAP px), when the centroid's window was too wide for the spot (WIDE_WINDOW) and the
+    fit lies within ``agree_sigmas`` · σ of ``chosen``; else ``chosen``. The σ is kept. A
+    clipped core (``guess.bright``) or a spot cut by the border keeps ``chosen``."""
+    if guess.bright:
+        return chosen
+    patch = spot_patch(planes, guess, guess.patch_support)
+    if patch is None or patch.cut:
+        return chosen
+    window_px = max(1.0, guess.radius_px)  # the centroid's window σ (refine_spot)
+    fit = gaussian_fit(patch, chosen[0], chosen[1], window_px)
+    if (fit is None or WIDE_WINDOW * fit[3] > window_px
+            or math.hypot(fit[0] - chosen[0], fit[1] - chosen[1]) > agree_sigmas * chosen[2]):
+        return chosen
+    return fit[0], fit[1], chosen[2]
+
+
+def polish_with_fit(image_rgb: NDArray[np.uint8], m: Measure,
+                    laser_rgb: tuple[float, float, float], options: DetectionOptions,
+                    max_radius: float) -> None:
+    """In place: a chosen unclipped spot's centre (image COLMAP px) from :func:`fit_centre`
+    with ``options.fit_agree_sigmas`` (0: off). Clipped cores, spots refined beside an
+    overlapping one, and every spot when ``options.refine`` is already "gaussian" keep
+    theirs."""
+    if options.fit_agree_sigmas <= 0 or options.refine == "gaussian" or m.bright or m.beside:
+        return
+    planes, guess, x0, y0 = _local_planes(image_rgb, m, laser_rgb, options, max_radius)
+    x, y, _ = fit_centre(planes, guess, (m.x - x0, m.y - y0, m.sigma_px),
+                         options.fit_agree_sigmas)
+    m.x, m.y = x + x0, y + y0

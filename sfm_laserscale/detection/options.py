@@ -107,6 +107,9 @@ class DetectionOptions:
     - ``two_signal_centre``: a luma-dominant (green) laser's chosen spot is refined on both of
       its signals, the texture-free light and luma: a clipped core takes their mean when they
       agree, and every such spot's σ gains their disagreement (:mod:`.centre`).
+    - ``fit_agree_sigmas``: an unclipped chosen spot takes the centre of a 2D Gaussian fit
+      when that lies within this many of its σ from the centroid (:func:`.centre.fit_centre`;
+      its σ is kept); 0 switches it off.
     - ``luma_separation_radii``: a luma-dominant (green) laser's spots are refined with a
       neighbour's light removed (read on the texture-free light alone) only when their centres
       lie within this many half-maximum radii (theirs summed); None: when their refinement
@@ -145,6 +148,7 @@ class DetectionOptions:
     sigma_window_gain: float = 0.5
     sigma_asymmetry_gain: float = 0.12
     two_signal_centre: bool = True
+    fit_agree_sigmas: float = 3.0
     luma_separation_radii: float | None = 3.0
     sigma_disagreement_gain: float = 0.354
     sigma_chroma_px: float = 0.3
@@ -168,7 +172,7 @@ class DetectionOptions:
             raise InputError(f"refine must be 'centroid' or 'gaussian', got {self.refine!r}")
         for name in ("min_clutter_ratio", "second_look_clutter_ratio", "alone_min_score",
                      "sigma_floor_px", "sigma_window_gain", "sigma_asymmetry_gain",
-                     "sigma_disagreement_gain", "sigma_chroma_px"):
+                     "sigma_disagreement_gain", "sigma_chroma_px", "fit_agree_sigmas"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("snr_half", "clutter_half", "colour_tau"):

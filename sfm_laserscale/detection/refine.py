@@ -397,17 +397,20 @@ def refine_centroid(
     return x, y, gain * patch.noise * math.sqrt(spread / 2.0) / total
 
 
-def refine_gaussian(
+def gaussian_fit(
     patch: SpotPatch, x0: float, y0: float, sigma0: float
-) -> tuple[float, float, float]:
-    """2D Gaussian fit to the unclipped support pixels of a :class:`SpotPatch`: (x, y, 1-sigma).
+) -> tuple[float, float, float, float] | None:
+    """2D Gaussian plus a constant fitted to the unclipped support pixels of a
+    :class:`SpotPatch`, started at (x0, y0) with width ``sigma0``: (x, y, 1-sigma of the
+    position, the fitted Gaussian's σ) in COLMAP px, or None when it fails (fewer than 8
+    pixels, no convergence, or a centre beyond the support).
 
     Clipped pixels are left out, so a saturated core does not flatten the fitted profile; the
     flanks of the spot carry its position.
     """
     use = patch.usable & ((patch.gx - x0) ** 2 + (patch.gy - y0) ** 2 < patch.support_px**2)
     if use.sum() < 8:
-        return x0, y0, 1.0
+        return None
     px, py, pv = patch.gx[use], patch.gy[use], patch.signal[use]
 
     def residual(p: F64) -> F64:
@@ -417,15 +420,23 @@ def refine_gaussian(
 
     p0 = np.array([max(float(patch.signal.max()), 1e-3), x0, y0, sigma0, 0.0])
     fit = least_squares(residual, p0, method="lm", max_nfev=300)
-    x, y = float(fit.x[1]), float(fit.x[2])
+    x, y, width = float(fit.x[1]), float(fit.x[2]), abs(float(fit.x[3]))
     if not (fit.success and math.hypot(x - x0, y - y0) < patch.support_px):
-        return x0, y0, 1.0
+        return None
     s2 = float(fit.fun @ fit.fun) / max(len(pv) - 5, 1)
     try:
         cov = np.linalg.inv(fit.jac.T @ fit.jac) * s2
     except np.linalg.LinAlgError:
-        return x, y, 1.0
-    return x, y, math.sqrt(max(0.5 * (cov[1, 1] + cov[2, 2]), 0.0))
+        return x, y, 1.0, width
+    return x, y, math.sqrt(max(0.5 * (cov[1, 1] + cov[2, 2]), 0.0)), width
+
+
+def refine_gaussian(
+    patch: SpotPatch, x0: float, y0: float, sigma0: float
+) -> tuple[float, float, float]:
+    """:func:`gaussian_fit`'s centre and its σ, or (x0, y0, 1) where it fails."""
+    fit = gaussian_fit(patch, x0, y0, sigma0)
+    return (x0, y0, 1.0) if fit is None else fit[:3]
 
 
 #: the wider window of the structure term: a centroid's fixed point under a window this many
