@@ -1,5 +1,5 @@
 """The reported centre of a chosen spot: a green laser's from both of its signals, an unclipped
-spot's from a Gaussian fit where it agrees with the centroid.
+spot's from a Gaussian fit where the centroid's window was too wide and the two agree.
 
 A luma-dominant laser's spot can be refined on two signals (:mod:`.refine`): its light freed of
 the scene's texture by colour, and luma. Each fails in its own way. The texture-free light
@@ -154,6 +154,7 @@ def polish_with_fit(image_rgb: NDArray[np.uint8], m: Measure,
     if options.fit_agree_sigmas <= 0 or options.refine == "gaussian" or m.bright or m.beside:
         return
     planes, guess, x0, y0 = _local_planes(image_rgb, m, laser_rgb, options, max_radius)
-    x, y, _ = fit_centre(planes, guess, (m.x - x0, m.y - y0, m.sigma_px),
-                         options.fit_agree_sigmas)
-    m.x, m.y = x + x0, y + y0
+    chosen = (m.x - x0, m.y - y0, m.sigma_px)
+    fitted = fit_centre(planes, guess, chosen, options.fit_agree_sigmas)
+    if fitted != chosen:
+        m.x, m.y = fitted[0] + x0, fitted[1] + y0

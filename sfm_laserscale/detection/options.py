@@ -108,8 +108,9 @@ class DetectionOptions:
       its signals, the texture-free light and luma: a clipped core takes their mean when they
       agree, and every such spot's σ gains their disagreement (:mod:`.centre`).
     - ``fit_agree_sigmas``: an unclipped chosen spot takes the centre of a 2D Gaussian fit
-      when that lies within this many of its σ from the centroid (:func:`.centre.fit_centre`;
-      its σ is kept); 0 switches it off.
+      where the centroid's window was too wide for it (``centre.WIDE_WINDOW`` × the fitted σ
+      or more) and the fit lies within this many of its σ from the centroid
+      (:func:`.centre.fit_centre`; its σ is kept); 0 switches it off.
     - ``luma_separation_radii``: a luma-dominant (green) laser's spots are refined with a
       neighbour's light removed (read on the texture-free light alone) only when their centres
       lie within this many half-maximum radii (theirs summed); None: when their refinement
