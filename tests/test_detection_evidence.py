@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from sfm_laserscale.detection.beams import beam_samples, range_along_beam, scene
 from sfm_laserscale.detection.joint import (
     DEPTH,
     Option,
+    all_whitened_value,
     choose_jointly,
     combination_value,
     depth_term,
@@ -166,6 +168,32 @@ def test_whitened_clipped_core_taken_only_at_the_other_spots_range() -> None:
     # a rescue below min_score is never taken
     assert _taken({"A": [Option(0, 0.8, 3.0)], "B": [Option(1, 0.05, 3.0, rescue=0.2)]}) == {
         "A": 0}
+
+
+def test_whitened_cores_alone_are_taken_only_on_their_beams_at_one_range() -> None:
+    """A frame whose every spot is a whitened core (seed 0 `marine_snow` 19: three cores
+    0.2-0.6 px from their beams' images, at 3.10-3.14 m) has no spot on its own evidence; three
+    such cores on their beams' lines at one range are taken, glints across the band are not."""
+    def core(i: int, range_m: float, share: float, rescue: float = 0.6) -> Option:
+        return Option(i, 0.05, range_m, rescue=rescue, beam_share=share)
+
+    def three(**change: tuple[float, float]) -> dict[str, list[Option]]:
+        base = {"B": (3.10, 0.05), "C": (3.14, 0.02), "D": (3.10, 0.04)}
+        base.update(change)
+        return {n: [core(i, *base[n])] for i, n in enumerate(sorted(base))}
+
+    choice = choose_jointly(three(), 0.25)
+    assert {n: o.rescued for n, o in choice.chosen.items()} == dict.fromkeys("BCD", True)
+    assert choice.floor_m == pytest.approx(3.10)
+    assert _taken(three(D=(3.10, 0.2))) == {}  # one of them across the band: a glint
+    assert _taken(three(D=(3.60, 0.04))) == {}  # one at another range
+    two = {n: o for n, o in three().items() if n != "D"}
+    assert _taken(two) == {}  # a pair agrees by chance in laser-free frames
+    combo = {n: replace(opts[0], rescued=True) for n, opts in three().items()}
+    valued = all_whitened_value(combo, 0.25)
+    assert valued is not None and valued[0] == pytest.approx(1.8)
+    combo["D"] = replace(combo["D"], rescue=0.2)  # worth less than min_score
+    assert all_whitened_value(combo, 0.25) is None
 
 
 def test_many_lasers_keep_the_joint_choice_within_its_budget() -> None:
@@ -352,3 +380,22 @@ def test_a_white_glint_streak_in_a_laser_free_frame_is_not_taken_for_a_spot() ->
     glint = [c for c in res.candidates
              if c.source == "bright" and math.dist((c.x, c.y), (2438.4, 809.0)) < 1.0]
     assert glint and dict(glint[0].evidence)["colour"] < 0.1
+
+
+def test_a_frame_whose_every_spot_is_a_whitened_core_keeps_its_spots() -> None:
+    """``marine_snow`` frame 19 at 1920 × 1080 (seed 0; rendered by the independent
+    generator): four 532 nm spots 4-16 × white, whose rims read white (colour 0.08-0.19), and
+    L3's laser-coloured option is judged alone against a lit particle. Three of the cores lie
+    0.2-0.6 px from their beams' images at 3.10-3.14 m: they are taken, and the floor through
+    them finds L3."""
+    from sfm_laserscale.commands.detect import parse_camera
+    from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
+
+    ci = list(CONDITIONS).index("marine_snow")
+    frame = render_frame("marine_snow", 1920, 1080, np.random.default_rng([0, ci, 0, 19]))
+    res = detect_spots(frame.image_rgb, parse_camera(frame.camera_spec),
+                       rig_from_dict(tomllib.loads(frame.rig_toml)))
+    got = {s.laser: (s.x, s.y) for s in res.spots}
+    assert set(got) == {"L1", "L2", "L3", "L4"}
+    for laser, xy in got.items():
+        assert math.dist(xy, frame.truth[laser]) < 0.5

@@ -31,8 +31,13 @@ each candidate to one laser (:func:`combination_value`):
   may be taken with CLIPPED_COLOUR for its colour term (``Option.rescue``) where its range
   agrees within RESCUE_RANGE_LN with r_ref of options taken on their own evidence: a glint sits
   anywhere along a band, a laser's spot at the range of the other spots. Whitened cores that
-  agree only with each other are not taken: at 4000 × 3000 the bands hold enough glints that
-  three or four of them agree within 15 % in most laser-free frames.
+  agree only with each other are taken only as a combination of ALL_WHITENED_MIN or more, each
+  within ALL_WHITENED_BEAM × ``band_px`` (how far a spot may lie from its beam's image) of that
+  image and all within
+  ALL_WHITENED_RANGE_LN of their median range (:func:`all_whitened_value`): at 4000 × 3000 the
+  bands hold enough glints that three or four of them agree within 15 % in most laser-free
+  frames, but not on their beams' lines as well (a laser's spot lies on its beam within the
+  rig's calibration error, a glint anywhere across the band).
 
 The combination of the highest total wins (ties: more spots). Particles lit by the beams are
 laser-coloured and strong, but their ranges agree neither with each other nor with the floor;
@@ -48,7 +53,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from sfm_laserscale.detection.beams import SearchRegion, range_along_beam
+from sfm_laserscale.detection.beams import SearchRegion, distance_to_polyline, range_along_beam
 from sfm_laserscale.detection.candidates import Measure
 
 F64 = NDArray[np.float64]
@@ -68,6 +73,12 @@ CLIPPED_COLOUR = 1.0
 RESCUE_RANGE_LN = 0.15
 #: factor of an option with laser light farther along its beam
 DEPTH = 0.1
+#: whitened cores agreeing only with each other are taken when this many or more …
+ALL_WHITENED_MIN = 3
+#: … each lies within this many ``band_px`` (the band's half-width) of its beam's image …
+ALL_WHITENED_BEAM = 0.1
+#: … and all within this (natural log) of their median range
+ALL_WHITENED_RANGE_LN = 0.08
 #: the joint choice weighs at most this many combinations (more: each laser's weakest
 #: alternatives are dropped first)
 MAX_COMBINATIONS = 20000
@@ -78,7 +89,8 @@ class Option:
     """A candidate for a laser: its index in ``valid``, its score (every evidence term but
     range and depth), its range (m), the ranges (m) of laser light farther along the laser's
     beam (``farther_m``), its score with CLIPPED_COLOUR for colour (``rescue``, 0 unless a
-    clipped core's colour read against it); ``rescued`` when taken that way."""
+    clipped core's colour read against it); ``rescued`` when taken that way; its distance
+    from the beam's image in ``band_px`` (``beam_share``)."""
 
     index: int
     score: float
@@ -86,6 +98,7 @@ class Option:
     rescue: float = 0.0
     rescued: bool = False
     farther_m: tuple[float, ...] = ()
+    beam_share: float = math.inf
 
 
 @dataclass(frozen=True)
@@ -132,9 +145,10 @@ def laser_options(name: str, scores: F64, region: SearchRegion, valid: list[Meas
         return []
     xy = np.array([[valid[j].x, valid[j].y] for j in order])
     ranges = range_along_beam(xy, region.polylines[name], region.ranges[name])
+    shares = distance_to_polyline(xy, region.polylines[name]) / region.band_px
     return [Option(j, float(scores[j]), float(r), _rescue(valid[j], float(scores[j])),
-                   farther_m=farther.get(j, ()))
-            for j, r in zip(order, ranges, strict=True)]
+                   farther_m=farther.get(j, ()), beam_share=float(d))
+            for j, r, d in zip(order, ranges, shares, strict=True)]
 
 
 def _rescue(m: Measure, score: float) -> float:
@@ -190,7 +204,7 @@ def combination_value(combo: dict[str, Option], min_score: float,
     plain = {n: o for n, o in combo.items() if not o.rescued}
     rescues = [o for o in combo.values() if o.rescued]
     if not plain:
-        return None
+        return all_whitened_value(combo, min_score)
     depth = _depths(combo)
     rescue_values = [o.rescue * depth[n] for n, o in combo.items() if o.rescued]
     if rescue_values and min(rescue_values) < min_score:
@@ -213,6 +227,26 @@ def combination_value(combo: dict[str, Option], min_score: float,
         if best is None or total > best[0]:
             best = (total, Choice(combo, ref, depth, refs | dict.fromkeys(together, ref)))
     return best
+
+
+def all_whitened_value(combo: dict[str, Option], min_score: float
+                       ) -> tuple[float, Choice] | None:
+    """(total value, choice) of a combination of whitened cores alone (every option
+    ``rescued``), or None: it needs ALL_WHITENED_MIN options or more, each within
+    ALL_WHITENED_BEAM × ``band_px`` of its beam's image, all within ALL_WHITENED_RANGE_LN of
+    their median range (its floor range), and each worth ``min_score`` with its depth term."""
+    opts = list(combo.values())
+    if len(opts) < ALL_WHITENED_MIN or any(
+            o.beam_share > ALL_WHITENED_BEAM or not math.isfinite(o.range_m) for o in opts):
+        return None
+    ref = float(np.median([o.range_m for o in opts]))
+    if any(abs(math.log(o.range_m / ref)) > ALL_WHITENED_RANGE_LN for o in opts):
+        return None
+    depth = _depths(combo)
+    values = [o.rescue * depth[n] for n, o in combo.items()]
+    if min(values) < min_score:
+        return None
+    return sum(values), Choice(combo, ref, depth, dict.fromkeys(combo, ref))
 
 
 def _alternatives(opts: list[Option], min_score: float) -> list[Option | None]:
