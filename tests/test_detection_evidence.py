@@ -399,3 +399,5 @@ def test_a_frame_whose_every_spot_is_a_whitened_core_keeps_its_spots() -> None:
     assert set(got) == {"L1", "L2", "L3", "L4"}
     for laser, xy in got.items():
         assert math.dist(xy, frame.truth[laser]) < 0.5
+    reasons = {c.laser: c.reason for c in res.candidates if c.laser}
+    assert "one of 3 such cores on their beams' lines at one range" in reasons["L1"]

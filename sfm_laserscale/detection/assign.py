@@ -201,6 +201,7 @@ def assign_calibrated(
     choice = choose_jointly(opts, options.min_score)
     _mark_choice(opts, choice, valid)
     picked = choice.chosen
+    whitened_only = all(o.rescued for o in picked.values())
     chosen: dict[str, int] = {}
     for name, o in picked.items():
         li = rig.names.index(name)
@@ -210,7 +211,9 @@ def assign_calibrated(
         m.laser, m.reason = name, f"assigned to {name}"
         if o.rescued:
             m.evidence["colour"] = CLIPPED_COLOUR
-            m.reason += (": a clipped core whose colour cannot be read, at the range of the "
+            m.reason += (f": a clipped core whose colour cannot be read, one of {len(picked)} "
+                         "such cores on their beams' lines at one range" if whitened_only else
+                         ": a clipped core whose colour cannot be read, at the range of the "
                          "other lasers' spots")
         m.score = float(np.prod(list(m.evidence.values())))
         chosen[name] = o.index
