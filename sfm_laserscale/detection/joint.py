@@ -33,11 +33,10 @@ each candidate to one laser (:func:`combination_value`):
   anywhere along a band, a laser's spot at the range of the other spots. Whitened cores that
   agree only with each other are taken only as a combination of ALL_WHITENED_MIN or more, each
   within ALL_WHITENED_BEAM × ``band_px`` (how far a spot may lie from its beam's image) of that
-  image and all within
-  ALL_WHITENED_RANGE_LN of their median range (:func:`all_whitened_value`): at 4000 × 3000 the
-  bands hold enough glints that three or four of them agree within 15 % in most laser-free
-  frames, but not on their beams' lines as well (a laser's spot lies on its beam within the
-  rig's calibration error, a glint anywhere across the band).
+  image and all within ALL_WHITENED_RANGE_LN of their median range (:func:`all_whitened_value`):
+  at 4000 × 3000 the bands hold enough glints that three or four of them agree within 15 % in
+  most laser-free frames, but not on their beams' lines as well (a laser's spot lies on its
+  beam within the rig's calibration error, a glint anywhere across the band).
 
 The combination of the highest total wins (ties: more spots). Particles lit by the beams are
 laser-coloured and strong, but their ranges agree neither with each other nor with the floor;
