@@ -32,11 +32,13 @@ also follow something beside the spot (a texture edge, a neighbour's flank) wher
 centroid's fixed point does not, so it is taken only within ``fit_agree_sigmas`` of the spot's
 σ from the centroid, and the σ stays the centroid's. Clipped cores keep the centroid: a fit to
 their flanks alone was measured less accurate (docs/DETECTION.md, the sixteenth round).
+:func:`centre_chosen` runs both on one crop around the spot.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -109,6 +111,37 @@ def _local_planes(image_rgb: NDArray[np.uint8], m: Measure,
     return planes, guess, x0, y0
 
 
+def _two_signals_apply(m: Measure, laser_rgb: tuple[float, float, float],
+                       options: DetectionOptions) -> bool:
+    """Whether :func:`two_signal_centre` refines this chosen spot."""
+    return (options.two_signal_centre and luma_dominant(np.asarray(laser_rgb))
+            and not m.beside)
+
+
+def _fit_applies(m: Measure, options: DetectionOptions) -> bool:
+    """Whether :func:`fit_centre` may move this chosen spot."""
+    return (options.fit_agree_sigmas > 0 and options.refine != "gaussian" and not m.bright
+            and not m.beside)
+
+
+def _centre(image_rgb: NDArray[np.uint8], m: Measure, laser_rgb: tuple[float, float, float],
+            options: DetectionOptions, max_radius: float, both: bool, fit: bool) -> None:
+    """In place: a chosen spot's centre and σ from :func:`two_signal_centre` (``both``), then
+    :func:`fit_centre` (``fit``), on one crop around it."""
+    if not (both or fit):
+        return
+    planes, guess, x0, y0 = _local_planes(image_rgb, m, laser_rgb, options, max_radius)
+    start = (m.x - x0, m.y - y0, m.sigma_px)
+    centre = start
+    if both:
+        centre = two_signal_centre(planes, guess, options.refine, options.sigma_model, centre)
+    if fit:
+        centre = fit_centre(planes, replace(guess, x=centre[0], y=centre[1]), centre,
+                            options.fit_agree_sigmas)
+    if centre != start:
+        m.x, m.y, m.sigma_px = centre[0] + x0, centre[1] + y0, centre[2]
+
+
 def centre_on_both(image_rgb: NDArray[np.uint8], m: Measure,
                    laser_rgb: tuple[float, float, float],
                    options: DetectionOptions, max_radius: float) -> None:
@@ -116,12 +149,8 @@ def centre_on_both(image_rgb: NDArray[np.uint8], m: Measure,
     for a luma-dominant laser (``laser_rgb``, its expected linear colour) when
     ``options.two_signal_centre``; other spots, and spots refined beside an overlapping one
     (their neighbour's light removed), keep theirs."""
-    if not (options.two_signal_centre and luma_dominant(np.asarray(laser_rgb))) or m.beside:
-        return
-    planes, guess, x0, y0 = _local_planes(image_rgb, m, laser_rgb, options, max_radius)
-    x, y, sigma = two_signal_centre(planes, guess, options.refine, options.sigma_model,
-                                    (m.x - x0, m.y - y0, m.sigma_px))
-    m.x, m.y, m.sigma_px = x + x0, y + y0, sigma
+    _centre(image_rgb, m, laser_rgb, options, max_radius,
+            both=_two_signals_apply(m, laser_rgb, options), fit=False)
 
 
 def fit_centre(planes: Planes, guess: SpotGuess, chosen: Centre, agree_sigmas: float
@@ -151,10 +180,14 @@ def polish_with_fit(image_rgb: NDArray[np.uint8], m: Measure,
     with ``options.fit_agree_sigmas`` (0: off). Clipped cores, spots refined beside an
     overlapping one, and every spot when ``options.refine`` is already "gaussian" keep
     theirs."""
-    if options.fit_agree_sigmas <= 0 or options.refine == "gaussian" or m.bright or m.beside:
-        return
-    planes, guess, x0, y0 = _local_planes(image_rgb, m, laser_rgb, options, max_radius)
-    chosen = (m.x - x0, m.y - y0, m.sigma_px)
-    fitted = fit_centre(planes, guess, chosen, options.fit_agree_sigmas)
-    if fitted != chosen:
-        m.x, m.y = fitted[0] + x0, fitted[1] + y0
+    _centre(image_rgb, m, laser_rgb, options, max_radius, both=False,
+            fit=_fit_applies(m, options))
+
+
+def centre_chosen(image_rgb: NDArray[np.uint8], m: Measure,
+                  laser_rgb: tuple[float, float, float], options: DetectionOptions,
+                  max_radius: float) -> None:
+    """In place: a chosen spot's reported centre and σ: :func:`centre_on_both`, then
+    :func:`polish_with_fit`, on one crop (image COLMAP px)."""
+    _centre(image_rgb, m, laser_rgb, options, max_radius,
+            both=_two_signals_apply(m, laser_rgb, options), fit=_fit_applies(m, options))

@@ -24,7 +24,7 @@ from sfm_laserscale.detection.assign import (
 )
 from sfm_laserscale.detection.beams import SearchRegion, search_region
 from sfm_laserscale.detection.candidates import Measure, candidates_for_colour
-from sfm_laserscale.detection.centre import centre_on_both, polish_with_fit
+from sfm_laserscale.detection.centre import centre_chosen
 from sfm_laserscale.detection.explain import explain_missing
 from sfm_laserscale.detection.floor import PLACE, floor_search
 from sfm_laserscale.detection.inputs import check_image, colours_needed, group_rgb
@@ -144,8 +144,7 @@ def detect_spots(
             missing[name] = f"{missing.get(name, 'no spot')}; {PLACE}: {why}"
     taken = {name: valid[j] for name, j in chosen.items()}
     for spot in taken.values():
-        centre_on_both(image_rgb, spot, group_rgb(rig, spot.color), options, region.max_radius)
-        polish_with_fit(image_rgb, spot, group_rgb(rig, spot.color), options, region.max_radius)
+        centre_chosen(image_rgb, spot, group_rgb(rig, spot.color), options, region.max_radius)
     spots = tuple(
         Spot(laser=name, x=m.x, y=m.y, score=float(np.clip(m.score, 0, 1)),
              sigma_px=m.sigma_px, source="detected")

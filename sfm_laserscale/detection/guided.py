@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 
 from sfm_laserscale.detection.beams import SearchRegion, default_max_spot_radius_px
 from sfm_laserscale.detection.candidates import Measure, candidates_for_colour
-from sfm_laserscale.detection.centre import centre_on_both, polish_with_fit
+from sfm_laserscale.detection.centre import centre_chosen
 from sfm_laserscale.detection.inputs import check_image, group_rgb
 from sfm_laserscale.detection.joint import CLIPPED_COLOUR
 from sfm_laserscale.detection.options import DetectionOptions
@@ -173,9 +173,8 @@ def detect_near_one(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, lase
     best, score, why = search_near(image_rgb, camera, rig, laser, xy, options, guided)
     if best is None:
         return None, why
-    max_radius = _max_radius(camera, options)
-    centre_on_both(image_rgb, best, group_rgb(rig, best.color), options, max_radius)
-    polish_with_fit(image_rgb, best, group_rgb(rig, best.color), options, max_radius)
+    centre_chosen(image_rgb, best, group_rgb(rig, best.color), options,
+                  _max_radius(camera, options))
     return Spot(laser=laser, x=best.x, y=best.y, score=float(min(score, 1.0)),
                 sigma_px=best.sigma_px, source="guided"), ""
 
