@@ -86,7 +86,8 @@ class SpotPatch:
     clipped pixels inside the support set to the highest unclipped value there (a flat top);
     ``usable``: no channel clipped; ``noise``: robust std of the signal on the background
     ring; ``support_px``: radius of the spot support; ``from_colour``: the signal is the
-    texture-free light (a colour difference), not luma.
+    texture-free light (a colour difference), not luma; ``texture``: the texture colour
+    that light was freed of (:func:`texture_direction`).
     """
 
     gx: F64
@@ -98,6 +99,7 @@ class SpotPatch:
     cut: bool  # the support disc is cut by the image border
     from_colour: bool = False
     bounds: tuple[float, float] = (math.inf, math.inf)  # the crop's width and height (px)
+    texture: F64 | None = None  # (3,) the texture colour the light was freed of
 
 
 def _plane_residual(value: F64, gx: F64, gy: F64, ring: NDArray[np.bool_]) -> F64:
@@ -174,16 +176,18 @@ def luma_dominant(laser_rgb: F64) -> bool:
 
 
 def spot_light(rgb: F64, clipped: NDArray[np.bool_], ring: NDArray[np.bool_],
-               laser_rgb: F64) -> tuple[F64, NDArray[np.bool_]]:
+               laser_rgb: F64, texture: F64 | None = None) -> tuple[F64, NDArray[np.bool_]]:
     """(h, w) laser light per pixel, free of texture, and where it is undetermined.
 
     At each pixel the unclipped channels are projected on the part of the laser's colour that
     is orthogonal to the texture colour (:func:`texture_direction`), scaled to unit response
     to the laser's light: texture cancels, laser light of any strength is measured in the same
     units whichever channels clipped. A pixel with fewer than two unclipped channels (or whose
-    unclipped channels cannot separate the two colours) is undetermined.
+    unclipped channels cannot separate the two colours) is undetermined. ``texture``: the
+    texture colour to cancel (None: :func:`texture_direction` of the ring).
     """
-    texture = texture_direction(rgb[ring], laser_rgb)
+    if texture is None:
+        texture = texture_direction(rgb[ring], laser_rgb)
     keys = (~clipped) @ np.array([1, 2, 4])  # (h, w): which channels are unclipped
     out = np.zeros(rgb.shape[:2])
     undetermined = np.ones(rgb.shape[:2], dtype=bool)
@@ -218,7 +222,7 @@ def _noise_gain(w: F64) -> float:
 
 def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
                neighbours: tuple[NeighbourModel, ...] = (), allow_luma: bool = True,
-               signal: str = "auto") -> SpotPatch | None:
+               signal: str = "auto", texture: F64 | None = None) -> SpotPatch | None:
     """The spot signal around a guess (crop COLMAP px); None with too little background.
 
     ``neighbours``: overlapping spots whose modelled light is removed first (so neither the
@@ -228,6 +232,8 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
     texture-free signal's (texture strong in luma, e.g. green water, keeps the latter).
     ``signal`` (one of SIGNALS): "auto" chooses so; "light" and "luma" force that signal (a
     luma-dominant laser's spot without neighbours; any other keeps the texture-free signal).
+    ``texture``: the texture colour the light is freed of (None: the ring's, :func:`spot_light`;
+    a measurement gives another capture of the same place the first one's).
     """
     if signal not in SIGNALS:
         raise ValueError(f"signal must be one of {SIGNALS}, got {signal!r}")
@@ -243,7 +249,9 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
     if ring.sum() < 8:
         return None
     inner = rr < support_px
-    value, undetermined = spot_light(rgb, clipped3, ring, planes.laser_rgb)
+    if texture is None:
+        texture = texture_direction(rgb[ring], planes.laser_rgb)
+    value, undetermined = spot_light(rgb, clipped3, ring, planes.laser_rgb, texture)
     for nb in neighbours:
         value = value - nb.at(gx, gy)
     sig = _plane_residual(value, gx, gy, ring)
@@ -265,7 +273,7 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
                or y0 + support_px > h)
     return SpotPatch(gx=gx, gy=gy, signal=sig, usable=~clipped, noise=robust_std(sig[ring]),
                      support_px=support_px, cut=cut, from_colour=from_colour,
-                     bounds=(float(w), float(h)))
+                     bounds=(float(w), float(h)), texture=texture)
 
 
 @dataclass(frozen=True)
