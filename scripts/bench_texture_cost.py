@@ -10,9 +10,9 @@ Every frame is rendered as in ``bench_centre_floor.py`` (the generators of
 ``bench_detection_physical.py --sizes WxH``), with its laser-free capture: the same noise
 draws, without JPEG. The detector runs on the frame with its default options. Every spot it
 reports within MATCH_PX of its truth is refined again from the detector's centre, at its
-candidate's half-maximum radius, with :func:`sfm_laserscale.detection.refine.refine_centroid`
-on each signal the detector can centre it on (:func:`~sfm_laserscale.detection.refine.
-spot_patch`: the light freed of the texture's colour, and luma for a luma-dominant laser):
+candidate's half-maximum radius, with ``refine.refine_centroid`` on each signal the detector
+can centre it on (``refine.spot_patch``): the light freed of the texture's colour, and luma
+for a luma-dominant laser:
 
 - *with the scene*: the signal as the detector sees it;
 - *without the scene*: the same signal minus the same signal of the laser-free capture, read

@@ -232,8 +232,9 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
     texture-free signal's (texture strong in luma, e.g. green water, keeps the latter).
     ``signal`` (one of SIGNALS): "auto" chooses so; "light" and "luma" force that signal (a
     luma-dominant laser's spot without neighbours; any other keeps the texture-free signal).
-    ``texture``: the texture colour the light is freed of (None: the ring's, :func:`spot_light`;
-    a measurement gives another capture of the same place the first one's).
+    ``texture``: the texture colour the light is freed of (None: the ring's,
+    :func:`texture_direction`); a second capture of the same place is read with the same
+    weights by giving it the first patch's ``texture``.
     """
     if signal not in SIGNALS:
         raise ValueError(f"signal must be one of {SIGNALS}, got {signal!r}")
