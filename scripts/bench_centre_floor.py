@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 from scipy.special import erf
 
-from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
+from sfm_laserscale.synthetic.underwater import CONDITIONS, Frame, render_frame
 from sfm_laserscale.synthetic.underwater.sensor import srgb_decode
 
 F64 = NDArray[np.float64]
@@ -122,16 +122,22 @@ def image_sigma_px(meta: dict[str, Any], footprint_sigma_px: float) -> float:
     return max(math.sqrt(var), 0.5)
 
 
-def run_job(job: Job) -> list[tuple[float, float]]:
-    """Both estimators' errors (px) for every spot of one frame."""
+def render_job(job: Job) -> tuple[Frame, NDArray[np.uint8]]:
+    """One job's frame (the benchmark's generator state: seed, condition index, 0, image
+    index) and its capture without the lasers (same noise draws, no JPEG)."""
     ci = list(CONDITIONS).index(job.condition)
     frame = render_frame(job.condition, job.size[0], job.size[1],
                          np.random.default_rng([job.seed, ci, 0, job.index]),
                          laser_free=True, laser_free_jpeg=False)
     if frame.image_laser_free_rgb is None:
         raise RuntimeError("the generator gave no laser-free capture")
-    light = (srgb_decode(frame.image_rgb / 255.0)
-             - srgb_decode(frame.image_laser_free_rgb / 255.0)).sum(axis=2)
+    return frame, frame.image_laser_free_rgb
+
+
+def run_job(job: Job) -> list[tuple[float, float]]:
+    """Both estimators' errors (px) for every spot of one frame."""
+    frame, dark = render_job(job)
+    light = (srgb_decode(frame.image_rgb / 255.0) - srgb_decode(dark / 255.0)).sum(axis=2)
     out = []
     for name, truth in frame.truth.items():
         if truth is None:
@@ -158,8 +164,9 @@ def summary_rows(jobs: Sequence[Job], results: Sequence[list[tuple[float, float]
     return rows
 
 
-def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def parse_args(argv: Sequence[str] | None, description: str) -> argparse.Namespace:
+    """The options of a benchmark over the physical generator's conditions."""
+    ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--per-condition", type=int, default=20)
     ap.add_argument("--size", default="1920x1080")
     ap.add_argument("--conditions", default=None)
@@ -169,17 +176,26 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     return ap.parse_args(argv)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    args = _parse(argv)
+def make_jobs(args: argparse.Namespace) -> list[Job]:
+    """The frames :func:`parse_args`'s options ask for (every condition with lasers by
+    default); ValueError names unknown conditions."""
     width, height = (int(v) for v in args.size.lower().split("x"))
     conds = (args.conditions.split(",") if args.conditions else
              [c for c in CONDITIONS if c != "no_lasers"])
     unknown = [c for c in conds if c not in CONDITIONS]
     if unknown:
-        print(f"unknown conditions: {', '.join(unknown)}", file=sys.stderr)
-        return 2
-    jobs = [Job(c, (width, height), args.seed, i) for c in conds
+        raise ValueError(f"unknown conditions: {', '.join(unknown)}")
+    return [Job(c, (width, height), args.seed, i) for c in conds
             for i in range(args.per_condition)]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parse_args(argv, __doc__.split("\n\n")[0])
+    try:
+        jobs = make_jobs(args)
+    except ValueError as err:
+        print(err, file=sys.stderr)
+        return 2
     with multiprocessing.Pool(max(1, args.workers)) as pool:
         results = pool.map(run_job, jobs, chunksize=1)
     rows = summary_rows(jobs, results)

@@ -27,7 +27,6 @@ own error on the same spots is given beside them. Numbers: docs/DETECTION.md.
 
 from __future__ import annotations
 
-import argparse
 import math
 import multiprocessing
 import sys
@@ -36,6 +35,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
+from bench_centre_floor import Job, make_jobs, parse_args, render_job
 from numpy.typing import NDArray
 
 from sfm_laserscale.commands.detect import parse_camera
@@ -51,23 +51,13 @@ from sfm_laserscale.detection.refine import (
 from sfm_laserscale.detection.response import Planes, crop_channels, make_planes
 from sfm_laserscale.detection.shape import expected_support_px
 from sfm_laserscale.rig import Rig, rig_from_dict
-from sfm_laserscale.synthetic.underwater import CONDITIONS, Frame, render_frame
+from sfm_laserscale.synthetic.underwater import Frame
 
 #: a reported spot this close to its truth (px) is measured (the benchmark's match distance)
 MATCH_PX = 1.5
 #: half-size (px) of the crop a spot is measured in
 CROP_PX = 40
 SIGNALS = ("light", "luma")
-
-
-@dataclass(frozen=True)
-class Job:
-    """One frame: condition, size (width, height), seed, image index."""
-
-    condition: str
-    size: tuple[int, int]
-    seed: int
-    index: int
 
 
 @dataclass(frozen=True)
@@ -106,10 +96,10 @@ def signal_errors(planes: Planes, dark: Planes, guess: SpotGuess,
     return errs[0], errs[1]
 
 
-def spot_cost(frame: Frame, rig: Rig, cand: Candidate, xy: tuple[float, float],
-              options: DetectionOptions) -> SpotCost | None:
-    """The detector's error and each signal's errors for one reported spot, or None near the
-    border."""
+def spot_cost(frame: Frame, dark_rgb: NDArray[np.uint8], rig: Rig, cand: Candidate,
+              xy: tuple[float, float], options: DetectionOptions) -> SpotCost | None:
+    """The detector's error and each signal's errors for one reported spot (``dark_rgb``:
+    the frame's capture without the lasers), or None near the border."""
     truth = frame.truth.get(cand.laser or "")
     if truth is None:
         return None
@@ -121,9 +111,7 @@ def spot_cost(frame: Frame, rig: Rig, cand: Candidate, xy: tuple[float, float],
     roi = (corner[0], corner[1], col + CROP_PX + 1, row + CROP_PX + 1)
     laser_rgb = group_rgb(rig, cand.color)
     planes = _planes(frame.image_rgb, roi, cand.color, laser_rgb, options)
-    if frame.image_laser_free_rgb is None:
-        raise RuntimeError("the generator gave no laser-free capture")
-    dark = _planes(frame.image_laser_free_rgb, roi, cand.color, laser_rgb, options)
+    dark = _planes(dark_rgb, roi, cand.color, laser_rgb, options)
     bright = bool(planes.clipped_laser[CROP_PX - 2:CROP_PX + 3, CROP_PX - 2:CROP_PX + 3].any())
     guess = SpotGuess(xy[0] - corner[0], xy[1] - corner[1], cand.radius_px,
                       expected_support_px(cand.radius_px), bright)
@@ -135,10 +123,7 @@ def spot_cost(frame: Frame, rig: Rig, cand: Candidate, xy: tuple[float, float],
 
 def run_job(job: Job) -> list[SpotCost]:
     """The costs of every spot the detector found in one frame."""
-    ci = list(CONDITIONS).index(job.condition)
-    frame = render_frame(job.condition, job.size[0], job.size[1],
-                         np.random.default_rng([job.seed, ci, 0, job.index]),
-                         laser_free=True, laser_free_jpeg=False)
+    frame, dark_rgb = render_job(job)
     rig = rig_from_dict(tomllib.loads(frame.rig_toml))
     options = DetectionOptions()
     result = detect_spots(frame.image_rgb, parse_camera(frame.camera_spec), rig, options)
@@ -148,7 +133,7 @@ def run_job(job: Job) -> list[SpotCost]:
         truth, cand = frame.truth.get(spot.laser), chosen.get(spot.laser)
         if truth is None or cand is None or math.dist((spot.x, spot.y), truth) > MATCH_PX:
             continue
-        cost = spot_cost(frame, rig, cand, (spot.x, spot.y), options)
+        cost = spot_cost(frame, dark_rgb, rig, cand, (spot.x, spot.y), options)
         if cost is not None:
             costs.append(cost)
     return costs
@@ -174,32 +159,17 @@ def summary_rows(jobs: Sequence[Job], results: Sequence[list[SpotCost]]) -> list
     return rows
 
 
-def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--per-condition", type=int, default=20)
-    ap.add_argument("--size", default="1920x1080")
-    ap.add_argument("--conditions", default=None)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--markdown", action="store_true")
-    return ap.parse_args(argv)
-
-
 HEADER = ("condition", "spots", "detector", "light, with the scene", "light, without",
           "luma, with the scene", "luma, without")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = _parse(argv)
-    width, height = (int(v) for v in args.size.lower().split("x"))
-    conds = (args.conditions.split(",") if args.conditions else
-             [c for c in CONDITIONS if c != "no_lasers"])
-    unknown = [c for c in conds if c not in CONDITIONS]
-    if unknown:
-        print(f"unknown conditions: {', '.join(unknown)}", file=sys.stderr)
+    args = parse_args(argv, __doc__.split("\n\n")[0])
+    try:
+        jobs = make_jobs(args)
+    except ValueError as err:
+        print(err, file=sys.stderr)
         return 2
-    jobs = [Job(c, (width, height), args.seed, i) for c in conds
-            for i in range(args.per_condition)]
     with multiprocessing.Pool(max(1, args.workers)) as pool:
         results = pool.map(run_job, jobs, chunksize=1)
     rows = summary_rows(jobs, results)

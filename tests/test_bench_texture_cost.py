@@ -8,23 +8,12 @@ import math
 
 import numpy as np
 
-from sfm_laserscale.detection import DetectionOptions
 from sfm_laserscale.detection.refine import SpotGuess, spot_patch
-from sfm_laserscale.detection.response import Planes, crop_channels, make_planes
-from sfm_laserscale.laser_color import DEFAULT_RGB
+from tests.painted_spots import GREEN, SIZE, TRUE_XY, gaussian, green_planes
 from tests.script_loader import load_script
 
+load_script("bench_centre_floor")  # imported by bench_texture_cost
 cost = load_script("bench_texture_cost")
-
-SIZE = 41
-TRUE_XY = (20.3, 19.8)  # COLMAP px
-GREEN = DEFAULT_RGB["green"]
-
-
-def _gaussian(xy: tuple[float, float], sigma: float) -> np.ndarray:
-    c = np.arange(SIZE) + 0.5
-    gx, gy = np.meshgrid(c, c)
-    return np.exp(-0.5 * ((gx - xy[0]) ** 2 + (gy - xy[1]) ** 2) / sigma**2)
 
 
 def _images(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -33,19 +22,13 @@ def _images(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     floor = np.array([0.10, 0.14, 0.10])
     dark = np.broadcast_to(floor, (SIZE, SIZE, 3)).copy()
-    dark += 0.8 * _gaussian((TRUE_XY[0] + 2.0, TRUE_XY[1]), 1.5)[..., None] * floor
+    dark += 0.8 * gaussian((TRUE_XY[0] + 2.0, TRUE_XY[1]), 1.5)[..., None] * floor
     dark += rng.normal(0.0, 0.001, dark.shape)
-    lit = dark + 0.4 * _gaussian(TRUE_XY, 1.2)[..., None] * np.asarray(GREEN)
+    lit = dark + 0.4 * gaussian(TRUE_XY, 1.2)[..., None] * np.asarray(GREEN)
 
     def encode(lin: np.ndarray) -> np.ndarray:
         return np.round(255.0 * np.clip(lin, 0.0, 1.0) ** (1 / 2.2)).astype(np.uint8)
     return encode(lit), encode(dark)
-
-
-def _planes(image: np.ndarray) -> Planes:
-    options = DetectionOptions()
-    return make_planes(crop_channels(image, (0, 0, SIZE, SIZE), options.input_gamma), "green",
-                       options, 10.0, GREEN)
 
 
 GUESS = SpotGuess(20.5, 19.5, 1.4, 4.0)
@@ -53,17 +36,18 @@ GUESS = SpotGuess(20.5, 19.5, 1.4, 4.0)
 
 def test_removing_the_scene_removes_the_blob_s_pull_on_luma() -> None:
     lit, dark = _images()
-    errs = cost.signal_errors(_planes(lit), _planes(dark), GUESS, (0, 0), TRUE_XY, "luma")
+    errs = cost.signal_errors(green_planes(lit), green_planes(dark), GUESS, (0, 0), TRUE_XY, "luma")
     assert errs is not None
     with_scene, without = errs
     assert with_scene > 0.3  # the blob, bright in luma, pulls the centroid towards it
     assert without < 0.05  # the spot's own light: only noise and pixelation are left
-    light = cost.signal_errors(_planes(lit), _planes(dark), GUESS, (0, 0), TRUE_XY, "light")
+    light = cost.signal_errors(green_planes(lit), green_planes(dark), GUESS, (0, 0), TRUE_XY,
+                               "light")
     assert light is not None and light[0] < 0.1  # the blob has the floor's colour: cancelled
 
 
 def test_a_given_texture_colour_is_the_one_used() -> None:
-    planes = _planes(_images()[0])
+    planes = green_planes(_images()[0])
     own = spot_patch(planes, GUESS, 4.0, signal="light")
     assert own is not None and own.texture is not None
     again = spot_patch(planes, GUESS, 4.0, signal="light", texture=own.texture)

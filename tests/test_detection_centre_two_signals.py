@@ -21,22 +21,11 @@ from sfm_laserscale.detection.candidates import Measure
 from sfm_laserscale.detection.centre import centre_on_both, two_signal_centre
 from sfm_laserscale.detection.options import SigmaModel
 from sfm_laserscale.detection.refine import SpotGuess, refine_spot, spot_patch
-from sfm_laserscale.detection.response import Planes, crop_channels, make_planes
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.laser_color import DEFAULT_RGB
 from sfm_laserscale.rig import rig_from_dict
 from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
-
-SIZE = 41
-TRUE_XY = (20.3, 19.8)  # COLMAP px
-GREEN = DEFAULT_RGB["green"]
-
-
-def _gaussian(xy: tuple[float, float], sigma: float) -> np.ndarray:
-    """(SIZE, SIZE) unit-peak Gaussian at a COLMAP point (pixel centres at index + 0.5)."""
-    c = np.arange(SIZE) + 0.5
-    gx, gy = np.meshgrid(c, c)
-    return np.exp(-0.5 * ((gx - xy[0]) ** 2 + (gy - xy[1]) ** 2) / sigma**2)
+from tests.painted_spots import GREEN, SIZE, TRUE_XY, gaussian, green_planes
 
 
 def _image(grey_blob: float, peak: float = 3.0, seed: int = 0) -> np.ndarray:
@@ -46,24 +35,18 @@ def _image(grey_blob: float, peak: float = 3.0, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     floor = np.array([0.10, 0.14, 0.10])
     lin = np.broadcast_to(floor, (SIZE, SIZE, 3)).copy()
-    lin += peak * _gaussian(TRUE_XY, 1.2)[..., None] * np.asarray(GREEN)
-    blob = _gaussian((TRUE_XY[0] + 2.5, TRUE_XY[1]), 1.2)[..., None]
+    lin += peak * gaussian(TRUE_XY, 1.2)[..., None] * np.asarray(GREEN)
+    blob = gaussian((TRUE_XY[0] + 2.5, TRUE_XY[1]), 1.2)[..., None]
     lin += grey_blob * blob * floor / floor.max()
     lin += rng.normal(0.0, 0.002, lin.shape)
     return np.round(255.0 * np.clip(lin, 0.0, 1.0) ** (1 / 2.2)).astype(np.uint8)
-
-
-def _planes(image: np.ndarray) -> Planes:
-    options = DetectionOptions()
-    return make_planes(crop_channels(image, (0, 0, SIZE, SIZE), options.input_gamma), "green",
-                       options, 10.0, GREEN)
 
 
 GUESS = SpotGuess(20.5, 19.5, 1.4, 4.0, bright=True)  # a clipped core
 
 
 def test_agreeing_signals_give_their_weighted_mean() -> None:
-    planes = _planes(_image(0.0))
+    planes = green_planes(_image(0.0))
     light = refine_spot(planes, GUESS, "centroid", signal="light")
     luma = refine_spot(planes, GUESS, "centroid", signal="luma")
     x, y, sigma = two_signal_centre(planes, GUESS, "centroid", SigmaModel(), light)
@@ -76,7 +59,7 @@ def test_agreeing_signals_give_their_weighted_mean() -> None:
 
 
 def test_an_unclipped_spot_keeps_its_centre_and_gains_the_disagreement_term() -> None:
-    planes = _planes(_image(0.0, peak=0.5))
+    planes = green_planes(_image(0.0, peak=0.5))
     guess = replace(GUESS, bright=False)
     light = refine_spot(planes, guess, "centroid", signal="light")
     luma = refine_spot(planes, guess, "centroid", signal="luma")
@@ -90,7 +73,7 @@ def test_an_unclipped_spot_keeps_its_centre_and_gains_the_disagreement_term() ->
 def test_only_the_texture_free_light_holds_the_colour_term() -> None:
     """Luma is kept at full resolution: a green spot refined on it has no colour term; on its
     texture-free light (a colour difference) σ² gains (chroma_px / radius)²."""
-    planes = _planes(_image(0.0))
+    planes = green_planes(_image(0.0))
     plain, colour = SigmaModel(chroma_px=0.0), SigmaModel()
     for signal in ("light", "luma"):
         a = refine_spot(planes, GUESS, "centroid", sigma_model=plain, signal=signal)
@@ -129,7 +112,7 @@ def test_two_centres_are_combined_only_when_they_agree(
     results = {"light": light, "luma": luma}
     monkeypatch.setattr(centre, "refine_spot",
                         lambda *args, signal, **kw: results[signal])
-    got = centre.two_signal_centre(_planes(_image(0.0)),
+    got = centre.two_signal_centre(green_planes(_image(0.0)),
                                    SpotGuess(20.0, 20.0, 1.5, 4.0, bright=True),
                                    "centroid", SigmaModel(), CHOSEN)
     assert got == pytest.approx(expected, abs=1e-9)
@@ -154,7 +137,7 @@ def test_red_spots_and_spots_beside_a_neighbour_keep_their_centre() -> None:
 
 def test_signal_and_gain_are_checked() -> None:
     with pytest.raises(ValueError, match="signal"):
-        spot_patch(_planes(_image(0.0)), GUESS, 4.0, signal="red")
+        spot_patch(green_planes(_image(0.0)), GUESS, 4.0, signal="red")
     with pytest.raises(InputError, match="sigma_disagreement_gain"):
         DetectionOptions(sigma_disagreement_gain=-0.1)
 

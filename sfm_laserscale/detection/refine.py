@@ -175,19 +175,17 @@ def luma_dominant(laser_rgb: F64) -> bool:
     return float(LUMA @ laser_rgb) >= MIN_LUMA_SHARE * float(np.max(laser_rgb))
 
 
-def spot_light(rgb: F64, clipped: NDArray[np.bool_], ring: NDArray[np.bool_],
-               laser_rgb: F64, texture: F64 | None = None) -> tuple[F64, NDArray[np.bool_]]:
+def spot_light(rgb: F64, clipped: NDArray[np.bool_], laser_rgb: F64, texture: F64
+               ) -> tuple[F64, NDArray[np.bool_]]:
     """(h, w) laser light per pixel, free of texture, and where it is undetermined.
 
     At each pixel the unclipped channels are projected on the part of the laser's colour that
-    is orthogonal to the texture colour (:func:`texture_direction`), scaled to unit response
-    to the laser's light: texture cancels, laser light of any strength is measured in the same
-    units whichever channels clipped. A pixel with fewer than two unclipped channels (or whose
-    unclipped channels cannot separate the two colours) is undetermined. ``texture``: the
-    texture colour to cancel (None: :func:`texture_direction` of the ring).
+    is orthogonal to the texture colour (``texture``: :func:`texture_direction` of a ring
+    around the spot), scaled to unit response to the laser's light: texture cancels, laser
+    light of any strength is measured in the same units whichever channels clipped. A pixel
+    with fewer than two unclipped channels (or whose unclipped channels cannot separate the
+    two colours) is undetermined.
     """
-    if texture is None:
-        texture = texture_direction(rgb[ring], laser_rgb)
     keys = (~clipped) @ np.array([1, 2, 4])  # (h, w): which channels are unclipped
     out = np.zeros(rgb.shape[:2])
     undetermined = np.ones(rgb.shape[:2], dtype=bool)
@@ -252,7 +250,7 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
     inner = rr < support_px
     if texture is None:
         texture = texture_direction(rgb[ring], planes.laser_rgb)
-    value, undetermined = spot_light(rgb, clipped3, ring, planes.laser_rgb, texture)
+    value, undetermined = spot_light(rgb, clipped3, planes.laser_rgb, texture)
     for nb in neighbours:
         value = value - nb.at(gx, gy)
     sig = _plane_residual(value, gx, gy, ring)
