@@ -208,3 +208,46 @@ def test_a_spot_near_the_floors_prediction_is_measured_against_its_own_surroundi
     measured against its own surroundings and taken (both were missed before)."""
     _, helped, _ = _searched_with_the_other_spots_radius(seed, condition, index, name, failed)
     assert helped.snr >= 5.0
+
+
+@pytest.mark.parametrize(("seed", "condition", "index", "name"), [
+    (0, "red_blue_water", 4, "L3"),  # a red spot on a textured floor in blue water
+    (1, "faint_far", 1, "L3"),  # a far green spot 0.8 × white at the end of its beam's glow
+])
+def test_a_weak_spot_near_the_floors_point_is_taken_on_its_evidence(
+        seed: int, condition: str, index: int, name: str) -> None:
+    """Physical frames: near where the floor through the other spots puts it, the maximum at the
+    spot fails the weak-spot test (SNR < 5), and the spot was missed. Searched again there with
+    SNR 2.5 allowed, its evidence (laser-coloured, round) reaches ``min_score``: it is taken."""
+    ci = list(CONDITIONS).index(condition)
+    frame = render_frame(condition, 1920, 1080, np.random.default_rng([seed, ci, 0, index]))
+    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
+    truth = frame.truth[name]
+    assert truth is not None
+    before = detect_spots(frame.image_rgb, camera, rig, DetectionOptions(floor_weak_min_snr=None))
+    assert name not in {s.laser for s in before.spots}
+    assert PLACE in before.missing[name]
+    res = detect_spots(frame.image_rgb, camera, rig)
+    got = {s.laser: s for s in res.spots}
+    assert name in got, res.missing.get(name)
+    assert math.dist((got[name].x, got[name].y), truth) < 0.5
+    assert PLACE in next(c.reason for c in res.candidates if c.laser == name)
+    # the others are as before
+    assert {s.laser: (s.x, s.y) for s in res.spots if s.laser != name} == {
+        s.laser: (s.x, s.y) for s in before.spots}
+
+
+def test_the_weak_spot_search_says_what_it_saw_and_checks_its_option() -> None:
+    """Physical frame (seed 0, ``camera_output`` 0, L1: a clipped core in a pale scene): the
+    maximum at the spot is weak (SNR 3.0 < 5); with SNR 2.5 allowed it scores just below
+    ``min_score``, and the reason says both."""
+    ci = list(CONDITIONS).index("camera_output")
+    frame = render_frame("camera_output", 1920, 1080, np.random.default_rng([0, ci, 0, 0]))
+    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
+    res = detect_spots(frame.image_rgb, camera, rig)
+    assert "L1" not in {s.laser for s in res.spots}
+    why = res.missing["L1"][res.missing["L1"].index(PLACE):]
+    assert "is weak (SNR 3.0 < 5); with SNR 2.5 allowed there, the best candidate at" in why
+    assert why.endswith("< 0.25") and why.count(PLACE) == 2
+    with pytest.raises(InputError, match="floor_weak_min_snr"):
+        DetectionOptions(floor_weak_min_snr=0.0)

@@ -148,7 +148,27 @@ def floor_search(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region:
     predicted = floor_predictions(camera, rig, region, spots_px, options.floor_min_spots,
                                   (options.min_range_m, options.max_range_m))
     radius = options.floor_radius_px or default_floor_radius_px(camera.width, camera.height)
-    guided = GuidedOptions(radius_px=radius)
-    return {name: FloorFind(*search_near(image_rgb, camera, rig, name, xy, options, guided,
-                                         PLACE, spot_radius_px))
+    return {name: _search(image_rgb, camera, rig, name, xy, options, radius, spot_radius_px)
             for name, xy in predicted.items()}
+
+
+def _search(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, name: str,
+            xy: tuple[float, float], options: DetectionOptions, radius_px: float,
+            spot_radius_px: float | None) -> FloorFind:
+    """One laser's search near the floor's point: with the weak-spot test at ``min_snr``, then,
+    where that takes nothing, at ``floor_weak_min_snr`` (the reason adds what that one saw)."""
+    first = FloorFind(*search_near(image_rgb, camera, rig, name, xy, options,
+                                   GuidedOptions(radius_px=radius_px), PLACE, spot_radius_px))
+    weak_snr = options.floor_weak_min_snr
+    if first.measure is not None or weak_snr is None or weak_snr >= options.min_snr:
+        return first
+    again = FloorFind(*search_near(image_rgb, camera, rig, name, xy, options,
+                                   GuidedOptions(radius_px=radius_px, min_snr=weak_snr), PLACE,
+                                   spot_radius_px))
+    if again.measure is not None:
+        return again
+    if again.why == first.why or "weak (SNR" in again.why:  # nothing more to say
+        return first
+    seen = again.why.replace(f", near {PLACE},", "").replace(f" near {PLACE},", "")
+    return FloorFind(None, 0.0, f"{first.why}; with SNR {weak_snr:g} allowed there, "
+                                f"{seen.replace(f', {PLACE}', '')}")

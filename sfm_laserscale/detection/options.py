@@ -98,6 +98,10 @@ class DetectionOptions:
     - ``floor_radius_px``: largest distance of such a spot from that point; None = 0.14 % of
       the image diagonal (3.1 px at 1920×1080, 7 px at 4000×3000): the floor's relief and the
       rig's calibration error move a spot in proportion to the focal length.
+    - ``floor_weak_min_snr``: where that search takes no candidate, it searches again with the
+      weak-spot test at this SNR instead of ``min_snr`` (None: not); the evidence still has to
+      reach ``min_score``, so a low SNR is taken only with the laser's colour and a round
+      shape (:func:`.floor.floor_search`).
 
     Sub-pixel centre:
 
@@ -144,6 +148,7 @@ class DetectionOptions:
     floor_search: bool = True
     floor_min_spots: int = 2
     floor_radius_px: float | None = None
+    floor_weak_min_snr: float | None = 2.5
     refine: str = "centroid"
     sigma_floor_px: float = 0.1
     sigma_window_gain: float = 0.5
@@ -184,7 +189,7 @@ class DetectionOptions:
         if self.floor_min_spots < 2:
             raise InputError(f"floor_min_spots must be >= 2, got {self.floor_min_spots}")
         for name in ("band_px", "max_spot_radius_px", "floor_radius_px",
-                     "luma_separation_radii"):
+                     "luma_separation_radii", "floor_weak_min_snr"):
             value = getattr(self, name)
             if value is not None and value <= 0:
                 raise InputError(f"{name} must be positive, got {value}")
