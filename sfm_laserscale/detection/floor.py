@@ -12,6 +12,9 @@ floor's relief and the rig's calibration error (measured in docs/DETECTION.md: a
 point with :func:`.guided.search_near`, where the band's competition (scene blobs as
 strong as a faint spot, hundreds of pixels of band) is gone, and the spots found give the size
 to expect (their median half-max radius, :class:`.beams.SearchRegion`'s ``spot_radius_px``).
+Where that search takes nothing, the same pixels are searched again with the weak-spot test at
+``floor_weak_min_snr`` (2.5) instead of ``min_snr`` (5): the evidence must still reach
+``min_score``, which at such an SNR takes a laser-coloured, round candidate only.
 """
 
 from __future__ import annotations

@@ -99,9 +99,9 @@ class DetectionOptions:
       the image diagonal (3.1 px at 1920×1080, 7 px at 4000×3000): the floor's relief and the
       rig's calibration error move a spot in proportion to the focal length.
     - ``floor_weak_min_snr``: where that search takes no candidate, it searches again with the
-      weak-spot test at this SNR instead of ``min_snr`` (None: not); the evidence still has to
-      reach ``min_score``, so a low SNR is taken only with the laser's colour and a round
-      shape (:func:`.floor.floor_search`).
+      weak-spot test at this SNR instead of ``min_snr`` (None, or a value not below
+      ``min_snr``: not); the evidence still has to reach ``min_score``, so a low SNR is taken
+      only with the laser's colour and a round shape (:func:`.floor.floor_search`).
 
     Sub-pixel centre:
 
