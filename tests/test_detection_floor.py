@@ -240,14 +240,20 @@ def test_a_weak_spot_near_the_floors_point_is_taken_on_its_evidence(
 def test_the_weak_spot_search_says_what_it_saw_and_checks_its_option() -> None:
     """Physical frame (seed 0, ``camera_output`` 0, L1: a clipped core in a pale scene): the
     maximum at the spot is weak (SNR 3.0 < 5); with SNR 2.5 allowed it scores just below
-    ``min_score``, and the reason says both."""
+    ``min_score``, and the reason says both. Where the second search saw nothing the first did
+    not, the reason is the first's."""
     ci = list(CONDITIONS).index("camera_output")
     frame = render_frame("camera_output", 1920, 1080, np.random.default_rng([0, ci, 0, 0]))
     camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
     res = detect_spots(frame.image_rgb, camera, rig)
     assert "L1" not in {s.laser for s in res.spots}
     why = res.missing["L1"][res.missing["L1"].index(PLACE):]
-    assert "is weak (SNR 3.0 < 5); with SNR 2.5 allowed there, the best candidate at" in why
+    assert ("is weak (SNR 3.0 < 5); with SNR 2.5 allowed, the best candidate near the same "
+            "point, at") in why
     assert why.endswith("< 0.25") and why.count(PLACE) == 2
+    # no spot and no maximum near the point: the second search adds nothing to say
+    truth = _spots((0.25, -0.2, 1.0), 2.8)
+    empty = detect_spots(_image(truth, {"L4": 0.0}, np.random.default_rng(5)), CAMERA, _rig())
+    assert "no local maximum" in empty.missing["L4"] and "allowed" not in empty.missing["L4"]
     with pytest.raises(InputError, match="floor_weak_min_snr"):
         DetectionOptions(floor_weak_min_snr=0.0)

@@ -39,6 +39,8 @@ _OPTICAL_AXIS = np.array([0.0, 0.0, 1.0])
 #: the search radius by default, as a share of the image diagonal (3.1 px at 1920 × 1080)
 RADIUS_PER_DIAGONAL = 0.0014
 PLACE = "where the floor through the other lasers' spots puts it"
+#: the same point, named again by the second search's reason
+SAME_PLACE = "the same point"
 
 
 def spot_points_m(spots_px: Mapping[str, tuple[float, float]], rig: Rig, region: SearchRegion
@@ -166,12 +168,10 @@ def _search(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, name: str,
     if first.measure is not None or weak_snr is None or weak_snr >= options.min_snr:
         return first
     again = FloorFind(*search_near(image_rgb, camera, rig, name, xy, options,
-                                   GuidedOptions(radius_px=radius_px, min_snr=weak_snr), PLACE,
-                                   spot_radius_px))
+                                   GuidedOptions(radius_px=radius_px, min_snr=weak_snr),
+                                   SAME_PLACE, spot_radius_px))
     if again.measure is not None:
         return again
-    if again.why == first.why or "weak (SNR" in again.why:  # nothing more to say
-        return first
-    seen = again.why.replace(f", near {PLACE},", "").replace(f" near {PLACE},", "")
-    return FloorFind(None, 0.0, f"{first.why}; with SNR {weak_snr:g} allowed there, "
-                                f"{seen.replace(f', {PLACE}', '')}")
+    if "weak (SNR" in again.why or again.why.replace(SAME_PLACE, PLACE) == first.why:
+        return first  # nothing the first reason does not say
+    return FloorFind(None, 0.0, f"{first.why}; with SNR {weak_snr:g} allowed, {again.why}")
