@@ -29,7 +29,7 @@ import argparse
 import math
 import multiprocessing
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -189,15 +189,25 @@ def make_jobs(args: argparse.Namespace) -> list[Job]:
             for i in range(args.per_condition)]
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    args = parse_args(argv, __doc__.split("\n\n")[0])
+def run_all(argv: Sequence[str] | None, description: str, worker: Callable[[Job], Any]
+            ) -> tuple[argparse.Namespace, list[Job], list[Any]] | None:
+    """The options, the jobs and ``worker``'s result for each (in ``--workers`` processes);
+    None, with the error printed, when the options name unknown conditions."""
+    args = parse_args(argv, description)
     try:
         jobs = make_jobs(args)
     except ValueError as err:
         print(err, file=sys.stderr)
-        return 2
+        return None
     with multiprocessing.Pool(max(1, args.workers)) as pool:
-        results = pool.map(run_job, jobs, chunksize=1)
+        return args, jobs, pool.map(worker, jobs, chunksize=1)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ran = run_all(argv, __doc__.split("\n\n")[0], run_job)
+    if ran is None:
+        return 2
+    args, jobs, results = ran
     rows = summary_rows(jobs, results)
     if args.markdown:
         print("| condition | spots | centroid median / p95 px | Gaussian fit median / p95 px |")

@@ -28,14 +28,12 @@ own error on the same spots is given beside them. Numbers: docs/DETECTION.md.
 from __future__ import annotations
 
 import math
-import multiprocessing
-import sys
 import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
-from bench_centre_floor import Job, make_jobs, parse_args, render_job
+from bench_centre_floor import Job, render_job, run_all
 from numpy.typing import NDArray
 
 from sfm_laserscale.commands.detect import parse_camera
@@ -164,14 +162,10 @@ HEADER = ("condition", "spots", "detector", "light, with the scene", "light, wit
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = parse_args(argv, __doc__.split("\n\n")[0])
-    try:
-        jobs = make_jobs(args)
-    except ValueError as err:
-        print(err, file=sys.stderr)
+    ran = run_all(argv, __doc__.split("\n\n")[0], run_job)
+    if ran is None:
         return 2
-    with multiprocessing.Pool(max(1, args.workers)) as pool:
-        results = pool.map(run_job, jobs, chunksize=1)
+    args, jobs, results = ran
     rows = summary_rows(jobs, results)
     if args.markdown:
         print("| " + " | ".join(HEADER) + " |")
