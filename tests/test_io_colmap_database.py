@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import shutil
 import sqlite3
+from contextlib import closing
 from pathlib import Path
 
 import numpy as np
@@ -159,8 +160,11 @@ def test_pycolmap_4_2_database(tmp_path: Path) -> None:
                 pycolmap.FeatureExtractorType.SIFT, desc))
             written[name] = (kp, desc)
         db.write_image(pycolmap.Image(name="nofeatures.jpg", camera_id=cam))
-    tables = {r[0] for r in sqlite3.connect(path).execute(
-        "SELECT name FROM sqlite_master WHERE type='table'")}
+    # closed here: an unclosed connection keeps -wal/-shm beside the file until the garbage
+    # collector closes it, which then races with the folder's snapshots below
+    with closing(sqlite3.connect(path)) as con:
+        tables = {r[0] for r in con.execute(
+            "SELECT name FROM sqlite_master WHERE type='table'")}
     assert {"rigs", "frames"} <= tables
     before = _folder_state(tmp_path)
     feats = read_database_features(path)
