@@ -171,8 +171,13 @@ def test_batch_jobs_2_runs_on_a_local_cluster_and_reports_every_failure(
         cruise: Path, tmp_path: Path) -> None:
     """--jobs 2: a local cluster of 2 processes started and closed by the batch; two broken
     models, each reported with its own reason (no worker outlives the batch)."""
+    from multiprocessing import resource_tracker
+
     import psutil
 
+    # the interpreter's one resource tracker lives as long as this process: started by the
+    # cluster when no test before this one in the process did, it is no worker of the batch
+    resource_tracker.ensure_running()
     before = {p.pid for p in psutil.Process().children(recursive=True)}
     code, output = _batch(str(cruise / "broken.csv"), "--out", str(tmp_path / "out"),
                           "--jobs", "2")
