@@ -13,9 +13,8 @@ point with :func:`.guided.search_near`, where the band's competition (scene blob
 strong as a faint spot, hundreds of pixels of band) is gone, and the spots found give the size
 to expect (their median half-max radius, :class:`.beams.SearchRegion`'s ``spot_radius_px``).
 Where that search takes nothing, the same pixels are searched again with the weak-spot test at
-``floor_weak_min_snr`` (2.5) instead of ``min_snr`` (5) and evidence of at least
-``floor_weak_min_score`` (0.2) instead of 0.25: at such an SNR only a laser-coloured, round
-candidate reaches it.
+``floor_weak_min_snr`` (2.5) instead of ``min_snr`` (5): the evidence must still reach
+``min_score``, which at such an SNR takes a laser-coloured, round candidate only.
 """
 
 from __future__ import annotations
@@ -162,20 +161,17 @@ def _search(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, name: str,
             xy: tuple[float, float], options: DetectionOptions, radius_px: float,
             spot_radius_px: float | None) -> FloorFind:
     """One laser's search near the floor's point: with the weak-spot test at ``min_snr``, then,
-    where that takes nothing, at ``floor_weak_min_snr`` and ``floor_weak_min_score`` (the reason
-    adds what that one saw)."""
+    where that takes nothing, at ``floor_weak_min_snr`` (the reason adds what that one saw)."""
     first = FloorFind(*search_near(image_rgb, camera, rig, name, xy, options,
                                    GuidedOptions(radius_px=radius_px), PLACE, spot_radius_px))
     weak_snr = options.floor_weak_min_snr
     if first.measure is not None or weak_snr is None or weak_snr >= options.min_snr:
         return first
     again = FloorFind(*search_near(image_rgb, camera, rig, name, xy, options,
-                                   GuidedOptions(radius_px=radius_px, min_snr=weak_snr,
-                                                 min_score=options.floor_weak_min_score),
+                                   GuidedOptions(radius_px=radius_px, min_snr=weak_snr),
                                    SAME_PLACE, spot_radius_px))
     if again.measure is not None:
         return again
     if "weak (SNR" in again.why or again.why.replace(SAME_PLACE, PLACE) == first.why:
         return first  # nothing the first reason does not say
-    return FloorFind(None, 0.0, f"{first.why}; with SNR {weak_snr:g} and score "
-                                f"{options.floor_weak_min_score:g} allowed, {again.why}")
+    return FloorFind(None, 0.0, f"{first.why}; with SNR {weak_snr:g} allowed, {again.why}")

@@ -100,9 +100,8 @@ class DetectionOptions:
       rig's calibration error move a spot in proportion to the focal length.
     - ``floor_weak_min_snr``: where that search takes no candidate, it searches again with the
       weak-spot test at this SNR instead of ``min_snr`` (None, or a value not below
-      ``min_snr``: not); its evidence has to reach ``floor_weak_min_score`` (0–1), so a low
-      SNR is taken only with the laser's colour and a round shape
-      (:func:`.floor.floor_search`).
+      ``min_snr``: not); the evidence still has to reach ``min_score``, so a low SNR is taken
+      only with the laser's colour and a round shape (:func:`.floor.floor_search`).
 
     Sub-pixel centre:
 
@@ -150,7 +149,6 @@ class DetectionOptions:
     floor_min_spots: int = 2
     floor_radius_px: float | None = None
     floor_weak_min_snr: float | None = 2.5
-    floor_weak_min_score: float = 0.2
     refine: str = "centroid"
     sigma_floor_px: float = 0.1
     sigma_window_gain: float = 0.5
@@ -188,9 +186,6 @@ class DetectionOptions:
                 raise InputError(f"{name} must be positive, got {getattr(self, name)}")
         if not self.spot_sigmas_px or min(self.spot_sigmas_px) <= 0:
             raise InputError("spot_sigmas_px must be positive")
-        if not 0 <= self.floor_weak_min_score <= 1:
-            raise InputError(f"floor_weak_min_score must be in [0, 1], got "
-                             f"{self.floor_weak_min_score}")
         if self.floor_min_spots < 2:
             raise InputError(f"floor_min_spots must be >= 2, got {self.floor_min_spots}")
         for name in ("band_px", "max_spot_radius_px", "floor_radius_px",
