@@ -65,6 +65,8 @@ WHITENED_MAX_COLOUR = 0.5
 #: maxima below the clutter gate measured for the second look, per response
 SECOND_LOOK_MAX = 12
 WEAKER_THAN_SCENE = "no stronger than the scene's own blobs"
+#: how the weak-spot test's rejection begins ("weak (SNR 3.0 < 5)")
+WEAK_SNR = "weak (SNR"
 
 
 @dataclass
@@ -209,7 +211,7 @@ def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
                                                      blob.support)
     m.rejected = blob.rejection
     if m.rejected is None and m.snr < options.min_snr:
-        m.rejected = f"weak (SNR {m.snr:.1f} < {options.min_snr:g})"
+        m.rejected = f"{WEAK_SNR} {m.snr:.1f} < {options.min_snr:g})"
     if m.rejected is not None:
         return
     refined = _refined(planes, m, options, region.spot_radius_px)

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sfm_laserscale.detection.beams import SearchRegion, range_along_beam
-from sfm_laserscale.detection.candidates import Measure
+from sfm_laserscale.detection.candidates import WEAK_SNR, Measure
 from sfm_laserscale.detection.guided import GuidedOptions, search_near
 from sfm_laserscale.detection.options import DetectionOptions
 from sfm_laserscale.model import Camera
@@ -172,6 +172,6 @@ def _search(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, name: str,
                                    SAME_PLACE, spot_radius_px))
     if again.measure is not None:
         return again
-    if "weak (SNR" in again.why or again.why.replace(SAME_PLACE, PLACE) == first.why:
+    if WEAK_SNR in again.why or again.why.replace(SAME_PLACE, PLACE) == first.why:
         return first  # nothing the first reason does not say
     return FloorFind(None, 0.0, f"{first.why}; with SNR {weak_snr:g} allowed, {again.why}")
