@@ -233,6 +233,61 @@ def test_deps_only_installs_the_lock_alone(tmp_path: Path) -> None:
     assert pip == [f"python3 -m pip install -q --require-hashes -r {REPO}/requirements.lock"]
 
 
+def _stub_venv(tmp: Path, fail_on: str = "") -> Path:
+    """A venv folder whose python logs its calls and fails those holding ``fail_on``."""
+    py = tmp / "venv" / "bin" / "python"
+    py.parent.mkdir(parents=True)
+    fail = f'case "$*" in *"{fail_on}"*) exit 1;; esac' if fail_on else ""
+    py.write_text(f"#!{shutil.which('bash')}\necho \"venv $*\" >> \"{tmp / 'calls.log'}\"\n"
+                  f"{fail}\n")
+    py.chmod(0o755)
+    return py
+
+
+def _venv_installs(tmp: Path, fail_on: str = "") -> tuple[subprocess.CompletedProcess[str],
+                                                           list[str]]:
+    env = _stub_env(tmp, root=False, installed={"libusb-1.0-0", "libgomp1"}, apt_ok=set())
+    py = _stub_venv(tmp, fail_on)
+    proc = _install(tmp, env, "--venv", str(py.parents[1]), "--locked", "--extras", "test",
+                    "--editable")
+    calls = [c.replace(str(py), "PY") for c in (tmp / "calls.log").read_text().splitlines()
+             if c.startswith("venv") and " install " in c]
+    return proc, calls
+
+
+LOCK_ARGS = f"-q --require-hashes -r {REPO}/requirements.lock"
+
+
+def test_venv_install_goes_through_uv(tmp_path: Path) -> None:
+    proc, calls = _venv_installs(tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    uv = re.search(r"^UV_VERSION=(\S+)$", (REPO / INSTALL).read_text(), re.M)
+    assert uv is not None
+    assert calls == ["venv -m pip install -q --upgrade pip",
+                     f"venv -m pip install -q uv=={uv.group(1)}",
+                     f"venv -m uv pip install --python PY {LOCK_ARGS}",
+                     f"venv -m uv pip install --python PY -q -e {REPO}[test]"]
+    assert "WARNING" not in proc.stderr
+
+
+def test_venv_install_falls_back_to_pip_when_uv_fails(tmp_path: Path) -> None:
+    proc, calls = _venv_installs(tmp_path, fail_on="-m uv ")
+    assert proc.returncode == 0, proc.stderr
+    assert calls[3:] == [f"venv -m pip install {LOCK_ARGS}",
+                         f"venv -m uv pip install --python PY -q -e {REPO}[test]",
+                         f"venv -m pip install -q -e {REPO}[test]"]
+    assert proc.stderr.count("WARNING: uv could not install") == 2
+
+
+def test_venv_install_without_uv_uses_pip_alone(tmp_path: Path) -> None:
+    proc, calls = _venv_installs(tmp_path, fail_on="install -q uv==")
+    assert proc.returncode == 0, proc.stderr
+    assert "WARNING: could not install uv" in proc.stderr
+    assert not [c for c in calls if "-m uv " in c]
+    assert calls[2:] == [f"venv -m pip install {LOCK_ARGS}",
+                         f"venv -m pip install -q -e {REPO}[test]"]
+
+
 def test_install_script_is_valid_bash() -> None:
     assert subprocess.run(["bash", "-n", str(REPO / INSTALL)], timeout=30).returncode == 0
     assert os.access(REPO / INSTALL, os.X_OK)

@@ -271,7 +271,7 @@ def imported_modules(path: Path) -> list[str]:
 
 
 def test_generator_imports_nothing_from_the_rest_of_the_package() -> None:
-    allowed = {"numpy", "scipy", "cv2", "math", "dataclasses", "collections", "typing",
+    allowed = {"numpy", "scipy", "cv2", "math", "dataclasses", "collections", "functools", "typing",
                "__future__"}
     for path in PACKAGE.glob("*.py"):
         if path.name == "survey.py":  # SfM and writers only: tests/test_underwater_survey.py

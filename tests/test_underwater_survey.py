@@ -37,19 +37,38 @@ FORBIDDEN = ("sfm_laserscale.detection", "sfm_laserscale.registration", "sfm_las
 
 @pytest.fixture(scope="module")
 def survey(tmp_path_factory: pytest.TempPathFactory) -> Survey:
-    """12 reference and 4 laser images at 960 x 540, seed 0, the true rig in rig.toml."""
+    """12 reference and 4 laser images at 960 x 540, seed 1, the true rig in rig.toml. Seed 1's
+    spots are all whitened clipped cores or lost among pale clutter: the detector alone leaves
+    two of the four laser images without a spot, so the guided search has work to do."""
     out = tmp_path_factory.mktemp("underwater_survey") / "data"
-    return make_survey(out, SurveyOptions(seed=0, rig_error_scale=0.0))
+    return make_survey(out, SurveyOptions(seed=1, rig_error_scale=0.0))
+
+
+def _run(survey: Survey, out: Path, *extra: str) -> tuple[Result, Path]:
+    """`sfm-laserscale scale` on the survey, as a user would type it."""
+    args = ["scale", "--model", str(survey.model_dir), "--mesh", str(survey.mesh_path),
+            "--rig", str(survey.rig_path), "--database", str(survey.database_path),
+            "--out", str(out), "--quiet", "--laser-images", str(survey.laser_images_dir), *extra]
+    return CliRunner().invoke(main, args, catch_exceptions=False), out
 
 
 @pytest.fixture(scope="module")
 def scale_run(survey: Survey, tmp_path_factory: pytest.TempPathFactory) -> tuple[Result, Path]:
-    """`sfm-laserscale scale` on the survey, as a user would type it."""
-    out = tmp_path_factory.mktemp("underwater_survey_scale") / "run"
-    args = ["scale", "--model", str(survey.model_dir), "--mesh", str(survey.mesh_path),
-            "--rig", str(survey.rig_path), "--database", str(survey.database_path),
-            "--out", str(out), "--quiet", "--laser-images", str(survey.laser_images_dir)]
-    return CliRunner().invoke(main, args, catch_exceptions=False), out
+    """`scale` with its defaults (automatic spots: the detector, then the guided search)."""
+    return _run(survey, tmp_path_factory.mktemp("underwater_survey_scale") / "run")
+
+
+@pytest.fixture(scope="module")
+def alone_run(survey: Survey, tmp_path_factory: pytest.TempPathFactory) -> tuple[Result, Path]:
+    """`scale --no-guided-spots`: the detector alone."""
+    return _run(survey, tmp_path_factory.mktemp("underwater_survey_alone") / "run",
+                "--no-guided-spots")
+
+
+def _report(run: tuple[Result, Path]) -> dict[str, Any]:
+    result, out = run
+    assert result.exit_code == 0, result.stderr
+    return dict(json.loads((out / "report.json").read_text()))
 
 
 def _spot_summary(report: dict[str, Any], truth: dict[str, Any]) -> str:
@@ -101,9 +120,7 @@ def test_photographs_are_jpeg_green_water_with_pale_clutter(survey: Survey) -> N
 
 
 def test_scale_end_to_end_on_the_survey(survey: Survey, scale_run: tuple[Result, Path]) -> None:
-    result, out = scale_run
-    assert result.exit_code == 0, result.stderr
-    report = json.loads((out / "report.json").read_text())
+    report = _report(scale_run)
     truth = json.loads(survey.truth_path.read_text())
     summary = _spot_summary(report, truth)
     value = report["scale"]["value"]
@@ -115,30 +132,13 @@ def test_scale_end_to_end_on_the_survey(survey: Survey, scale_run: tuple[Result,
         assert im["spots"], f"no spot detected in {im['name']}\n{summary}"
 
 
-@pytest.fixture(scope="module")
-def survey_seed1(tmp_path_factory: pytest.TempPathFactory) -> Survey:
-    """Seed 1: laser images whose every spot is a whitened clipped core or lost among pale
-    clutter (the detector alone leaves two of the four images without a spot)."""
-    out = tmp_path_factory.mktemp("underwater_survey_seed1") / "data"
-    return make_survey(out, SurveyOptions(seed=1, rig_error_scale=0.0))
-
-
-def _run(survey: Survey, out: Path, *extra: str) -> dict[str, Any]:
-    args = ["scale", "--model", str(survey.model_dir), "--mesh", str(survey.mesh_path),
-            "--rig", str(survey.rig_path), "--database", str(survey.database_path),
-            "--out", str(out), "--quiet", "--laser-images", str(survey.laser_images_dir), *extra]
-    result = CliRunner().invoke(main, args, catch_exceptions=False)
-    assert result.exit_code == 0, result.stderr
-    return dict(json.loads((out / "report.json").read_text()))
-
-
 def test_spots_the_detector_missed_are_found_where_the_model_puts_them(
-        survey_seed1: Survey, tmp_path: Path) -> None:
-    truth = json.loads(survey_seed1.truth_path.read_text())
+        survey: Survey, scale_run: tuple[Result, Path], alone_run: tuple[Result, Path]
+) -> None:
+    truth = json.loads(survey.truth_path.read_text())
     true_xy = {(im["name"], s["laser"]): (s["x"], s["y"])
                for im in truth["laser_images"] for s in im["spots"] if s.get("x") is not None}
-    alone = _run(survey_seed1, tmp_path / "alone", "--no-guided-spots")
-    guided = _run(survey_seed1, tmp_path / "guided")
+    alone, guided = _report(alone_run), _report(scale_run)
     summary = _spot_summary(guided, truth)
 
     def spots(report: dict[str, Any], source: str) -> list[float]:
@@ -151,8 +151,6 @@ def test_spots_the_detector_missed_are_found_where_the_model_puts_them(
     assert len(found) >= 6 and max(found) < 1.0, summary
     assert sum(not im["spots"] for im in guided["images"]) == 0, summary
     assert len(spots(guided, "detected")) == len(spots(alone, "detected"))
-    err = (guided["scale"]["value"] - survey_seed1.true_scale) / survey_seed1.true_scale
-    assert abs(err) < 0.003, f"{err:+.3%}\n{summary}"
     assert "guided" in guided["timings_s"] and "guided" not in alone["timings_s"]
-    rows = (tmp_path / "guided" / "spots.csv").read_text().splitlines()
+    rows = (scale_run[1] / "spots.csv").read_text().splitlines()
     assert sum(r.endswith(",guided") for r in rows) == len(found)
