@@ -135,7 +135,9 @@ use_uv_in_venv() {  # a venv of our own installs through uv's pip (below); 1 whe
 pip_install() {  # pip_install PY ARGS...: `pip install ARGS` through uv when USE_UV, else pip
   local py=$1; shift
   if [ "$USE_UV" -eq 1 ]; then
-    "$py" -m uv pip install --python "$py" "$@" && return 0
+    # --compile-bytecode: as pip does (uv does not by default); without the .pyc files every
+    # process compiles the modules it imports again where PYTHONDONTWRITEBYTECODE is set
+    "$py" -m uv pip install --python "$py" --compile-bytecode "$@" && return 0
     say "WARNING: uv could not install ($*); trying pip"
   fi
   "$py" -m pip install "$@"
@@ -148,7 +150,7 @@ install_python() {
     py="$VENV/bin/python"
     "$py" -m pip install -q --upgrade pip
     # uv installs the same pinned, hashed wheels as pip in about a third of the time (a fresh
-    # .venv: 20 s against 69 s), which a clean clone's `make test` pays on every CI run. Only
+    # .venv: 38 s against 69 s), which a clean clone's `make test` pays on every CI run. Only
     # in a venv of our own: an interpreter given by --python (the Docker image's) keeps pip.
     use_uv_in_venv "$py" || true
   else

@@ -256,6 +256,7 @@ def _venv_installs(tmp: Path, fail_on: str = "") -> tuple[subprocess.CompletedPr
 
 
 LOCK_ARGS = f"-q --require-hashes -r {REPO}/requirements.lock"
+UV = "venv -m uv pip install --python PY --compile-bytecode"
 
 
 def test_venv_install_goes_through_uv(tmp_path: Path) -> None:
@@ -265,8 +266,8 @@ def test_venv_install_goes_through_uv(tmp_path: Path) -> None:
     assert uv is not None
     assert calls == ["venv -m pip install -q --upgrade pip",
                      f"venv -m pip install -q uv=={uv.group(1)}",
-                     f"venv -m uv pip install --python PY {LOCK_ARGS}",
-                     f"venv -m uv pip install --python PY -q -e {REPO}[test]"]
+                     f"{UV} {LOCK_ARGS}",
+                     f"{UV} -q -e {REPO}[test]"]
     assert "WARNING" not in proc.stderr
 
 
@@ -274,7 +275,7 @@ def test_venv_install_falls_back_to_pip_when_uv_fails(tmp_path: Path) -> None:
     proc, calls = _venv_installs(tmp_path, fail_on="-m uv ")
     assert proc.returncode == 0, proc.stderr
     assert calls[3:] == [f"venv -m pip install {LOCK_ARGS}",
-                         f"venv -m uv pip install --python PY -q -e {REPO}[test]",
+                         f"{UV} -q -e {REPO}[test]",
                          f"venv -m pip install -q -e {REPO}[test]"]
     assert proc.stderr.count("WARNING: uv could not install") == 2
 
