@@ -149,7 +149,7 @@ install_python() {
     [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
     py="$VENV/bin/python"
     "$py" -m pip install -q --upgrade pip
-    # uv installs the same pinned, hashed wheels as pip in about a third of the time (a fresh
+    # uv installs the same pinned, hashed wheels as pip in about half the time (a fresh
     # .venv: 38 s against 69 s), which a clean clone's `make test` pays on every CI run. Only
     # in a venv of our own: an interpreter given by --python (the Docker image's) keeps pip.
     use_uv_in_venv "$py" || true
