@@ -125,11 +125,12 @@ switch_to_cpu_open3d() {  # an environment made before the switch: the full whee
 UV_VERSION=0.13.9
 USE_UV=0
 
-use_uv_in_venv() {  # a venv of our own installs through uv's pip (below); 1 when it cannot
-  local py=$1
-  "$py" -m pip install -q "uv==$UV_VERSION" && USE_UV=1 && return 0
-  say "WARNING: could not install uv $UV_VERSION; installing with pip (slower)"
-  return 1
+use_uv_in_venv() {  # a venv of our own installs through uv's pip (below) when uv installs
+  if "$1" -m pip install -q "uv==$UV_VERSION"; then
+    USE_UV=1
+  else
+    say "WARNING: could not install uv $UV_VERSION; installing with pip (slower)"
+  fi
 }
 
 pip_install() {  # pip_install PY ARGS...: `pip install ARGS` through uv when USE_UV, else pip
@@ -152,7 +153,7 @@ install_python() {
     # uv installs the same pinned, hashed wheels as pip in about half the time (a fresh
     # .venv: 38 s against 69 s), which a clean clone's `make test` pays on every CI run. Only
     # in a venv of our own: an interpreter given by --python (the Docker image's) keeps pip.
-    use_uv_in_venv "$py" || true
+    use_uv_in_venv "$py"
   else
     py="$PY"
   fi

@@ -239,7 +239,7 @@ def srgb_decode(enc: NDArray[np.float64]) -> NDArray[np.float64]:
 @functools.lru_cache(maxsize=16)
 def _transfer_lut(tone: float) -> F32:
     """(65536,) sRGB curve then tone S-curve, on linear values i / 65535 (read-only: one table
-    per tone curve, made once; building it cost about 1 ms per developed patch)."""
+    per tone curve, made once and shared by every developed patch)."""
     enc = srgb_encode(np.linspace(0.0, 1.0, 65536, dtype=np.float32))
     if tone > 0.0:
         enc = (1.0 - tone) * enc + tone * enc * enc * (3.0 - 2.0 * enc)
