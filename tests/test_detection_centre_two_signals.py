@@ -8,6 +8,7 @@ the unclipped channels, 0.7 px off; a disagreement that widens the σ).
 
 from __future__ import annotations
 
+import functools
 import math
 import tomllib
 from dataclasses import replace
@@ -24,7 +25,7 @@ from sfm_laserscale.detection.refine import SpotGuess, refine_spot, spot_patch
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.laser_color import DEFAULT_RGB
 from sfm_laserscale.rig import rig_from_dict
-from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
+from sfm_laserscale.synthetic.underwater import CONDITIONS, Frame, render_frame
 from tests.painted_spots import GREEN, SIZE, TRUE_XY, gaussian, green_planes
 
 
@@ -99,9 +100,14 @@ CHOSEN = (20.0, 20.0, 0.2)
      (20.0 + 0.8 * 4 / (4 + 1 / 0.29), 20.0, math.hypot(0.5, 0.354 * 0.8))),
     # 1.5 px apart, within 4σ combined but more than 1 px: the chosen centre is kept
     ((20.0, 20.0, 0.5), (21.5, 20.0, 0.5), (20.0, 20.0, math.hypot(0.2, 0.354 * 1.5))),
-    # 0.95 px apart, beyond 4σ combined (0.85 px): the chosen centre is kept
+    # 0.95 px apart, beyond 4σ combined (0.85 px), σ 0.21 and 0.05 (more than 3× apart):
+    # the sharper centre (luma) is taken
     ((20.0, 20.0, math.hypot(0.05, 0.2)), (20.95, 20.0, 0.05),
-     (20.0, 20.0, math.hypot(0.2, 0.354 * 0.95))),
+     (20.95, 20.0, math.hypot(0.05, 0.354 * 0.95))),
+    # ... and so is the texture-free light's when it is the sharper one
+    ((20.0, 20.0, 0.1), (21.2, 20.0, 0.6), (20.0, 20.0, math.hypot(0.1, 0.354 * 1.2))),
+    # 1.2 px apart, σ less than 3× apart: the chosen centre is kept
+    ((20.0, 20.0, 0.3), (21.2, 20.0, 0.15), (20.0, 20.0, math.hypot(0.2, 0.354 * 1.2))),
     # a signal that cannot be refined, or wanders beyond max(2, radius): nothing changes
     ((20.0, 20.0, math.nan), (20.1, 20.0, 0.1), CHOSEN),
     ((20.0, 20.0, 0.1), (22.5, 20.0, 0.1), CHOSEN),
@@ -118,7 +124,26 @@ def test_two_centres_are_combined_only_when_they_agree(
     assert got == pytest.approx(expected, abs=1e-9)
 
 
-def test_red_spots_and_spots_beside_a_neighbour_keep_their_centre() -> None:
+@pytest.mark.parametrize(("light", "luma", "clipped", "expected"), [
+    # a red or blue clipped core whose luma centre disagrees and is 3× sharper: luma's
+    ((20.0, 20.0, 0.9), (21.5, 20.0, 0.2), True, (21.5, 20.0, math.hypot(0.2, 0.354 * 1.5))),
+    # its texture-free light the sharper: the chosen centre and σ, untouched
+    ((20.0, 20.0, 0.1), (21.5, 20.0, 0.9), True, CHOSEN),
+    # the two agree, or luma is not 3× sharper: untouched (luma holds the scene's texture)
+    ((20.0, 20.0, 0.3), (20.2, 20.0, 0.1), True, CHOSEN),
+    ((20.0, 20.0, 0.5), (21.5, 20.0, 0.2), True, CHOSEN),
+    # an unclipped spot: untouched
+    ((20.0, 20.0, 0.9), (21.5, 20.0, 0.2), False, CHOSEN),
+])
+def test_a_red_or_blue_clipped_core_takes_luma_only_where_it_is_much_sharper(
+        light: tuple[float, float, float], luma: tuple[float, float, float], clipped: bool,
+        expected: tuple[float, float, float]) -> None:
+    got = centre.combine_centres(light, luma, CHOSEN, clipped, green=False,
+                                 disagreement_gain=0.354)
+    assert got == pytest.approx(expected, abs=1e-9)
+
+
+def test_unclipped_red_spots_and_spots_beside_a_neighbour_keep_their_centre() -> None:
     image = _image(0.0)
     options = DetectionOptions()
     for m, rgb in ((Measure(20.6, 19.6, "red", "colour", 1.0, radius_px=1.4, support_px=4.0,
@@ -142,13 +167,20 @@ def test_signal_and_gain_are_checked() -> None:
         DetectionOptions(sigma_disagreement_gain=-0.1)
 
 
-def _detect(condition: str, index: int, two_signals: bool) -> tuple[dict, dict]:
-    ci = list(CONDITIONS).index(condition)
-    frame = render_frame(condition, 1920, 1080, np.random.default_rng([0, ci, 0, index]))
+def _detect(condition: str, index: int, two_signals: bool,
+            size: tuple[int, int] = (1920, 1080)) -> tuple[dict, dict]:
+    frame = _render(condition, index, size)
     rig = rig_from_dict(tomllib.loads(frame.rig_toml))
     res = detect_spots(frame.image_rgb, parse_camera(frame.camera_spec), rig,
                        DetectionOptions(two_signal_centre=two_signals))
     return {s.laser: s for s in res.spots}, frame.truth
+
+
+@functools.lru_cache(maxsize=1)
+def _render(condition: str, index: int, size: tuple[int, int]) -> Frame:
+    """A frame of the physical benchmark (seed 0; its first size's generator draws)."""
+    ci = list(CONDITIONS).index(condition)
+    return render_frame(condition, *size, np.random.default_rng([0, ci, 0, index]))
 
 
 def test_clipped_cores_are_centred_on_luma_where_the_light_was_crosstalk() -> None:
@@ -175,3 +207,21 @@ def test_a_disagreement_widens_the_sigma_of_the_centre_kept() -> None:
     err = max(abs(after["L3"].x - t[0]), abs(after["L3"].y - t[1]))
     assert err > 1.96 * before["L3"].sigma_px
     assert err < 1.96 * after["L3"].sigma_px
+
+
+def test_a_red_clipped_core_is_centred_on_luma_where_its_light_is_not_symmetric() -> None:
+    """``turbid_brown`` frame 8 at 4000 × 3000, L2: a red core 3.8× white in yellow-brown
+    water whose red channel is near full scale around it. Its texture-free light, read from
+    the unclipped green and blue, centres it 4.2 px off with σ 1.6 px; luma sees the core
+    whole (0.4 px off, σ 0.2 px)."""
+    before, truth = _detect("turbid_brown", 8, two_signals=False, size=(4000, 3000))
+    after, _ = _detect("turbid_brown", 8, two_signals=True, size=(4000, 3000))
+    t = truth["L2"]
+    assert t is not None
+    assert math.dist((before["L2"].x, before["L2"].y), t) > 3.0
+    assert before["L2"].sigma_px > 1.0
+    assert math.dist((after["L2"].x, after["L2"].y), t) < 0.6
+    # the two centres disagree by ~4 px: the σ says so
+    assert after["L2"].sigma_px > 1.0
+    for name in ("L3", "L4"):  # cores whose two signals agree keep their centre
+        assert (after[name].x, after[name].y) == (before[name].x, before[name].y)

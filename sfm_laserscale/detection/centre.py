@@ -1,5 +1,6 @@
-"""The reported centre of a chosen spot: a green laser's from both of its signals, an unclipped
-spot's from a Gaussian fit where the centroid's window was too wide and the two agree.
+"""The reported centre of a chosen spot: a green laser's, or any clipped core's, from both of its
+signals; an unclipped spot's from a Gaussian fit where the centroid's window was too wide and the
+two agree.
 
 A luma-dominant laser's spot can be refined on two signals (:mod:`.refine`): its light freed of
 the scene's texture by colour, and luma. Each fails in its own way. The texture-free light
@@ -14,12 +15,20 @@ a clipped core's crosstalk pixels inflate; once a laser's spot is chosen,
   of their σ combined and TWO_SIGNALS_MAX_APART_PX) takes their inverse-variance weighted
   mean, with the smaller of the two σ (the texture-free light's σ holds the 2 × 2 sampling
   of colour, ``SigmaModel.chroma_px``);
-- otherwise the spot keeps the centre the search chose: two centres that disagree cannot tell
-  which of them is off, and on an unclipped spot the SNR choice compares like with like.
+- a clipped core whose two centres disagree and whose σ differ by TWO_SIGNALS_SIGMA_RATIO or
+  more takes the centre of the smaller σ. The σ holds how far the light is from
+  point-symmetric about the centre and how far a wider window moves it, so the centre whose
+  light is a clean spot wins (the other one's signal holds texture, a lamp's hot spot or the
+  scene's colour under the core);
+- otherwise the spot keeps the centre the search chose: two centres that disagree by similar
+  σ cannot tell which of them is off, and on an unclipped spot the SNR choice compares like
+  with like.
 
 Either way its σ gains (disagreement_gain · d)², d the distance between the two centres
-(:class:`~sfm_laserscale.detection.options.SigmaModel`). Measured in docs/DETECTION.md
-("Two signals").
+(:class:`~sfm_laserscale.detection.options.SigmaModel`). A red or blue laser's clipped core is
+refined on luma too, but luma holds more of the scene's texture than of its light: it takes
+luma's centre only by the σ rule above, and otherwise keeps its centre and σ. Measured in
+docs/DETECTION.md ("Two signals", the twenty-first round).
 
 Then :func:`polish_with_fit` fits a 2D Gaussian plus a constant to an unclipped chosen spot
 (:func:`fit_centre`, on the signal and window it was refined on). The centroid's Gaussian
@@ -60,6 +69,9 @@ TWO_SIGNALS_AGREE = 4.0
 #: … and within this many pixels (farther apart, one is off by half of it or more, whatever
 #: the σ say)
 TWO_SIGNALS_MAX_APART_PX = 1.0
+#: two centres of a clipped core that disagree: the one whose σ is this many times smaller
+#: is taken (its light is point-symmetric about it and its window did not move it)
+TWO_SIGNALS_SIGMA_RATIO = 3.0
 #: an unclipped spot takes its Gaussian fit's centre only where the centroid's window σ (its
 #: half-maximum radius, at least 1 px) is at least this many times the fitted σ: a window
 #: wider than the spot weights pixels that hold more noise than light
@@ -72,28 +84,47 @@ Centre = tuple[float, float, float]  # (x, y, σ), px
 
 def two_signal_centre(planes: Planes, guess: SpotGuess, refine: str, sigma_model: SigmaModel,
                       chosen: Centre) -> Centre:
-    """A luma-dominant laser's spot centred on its texture-free light and on luma (crop COLMAP
-    px): their weighted mean when its laser channel clips (``guess.bright``) and they agree,
-    else ``chosen``; σ with the disagreement term.
-
-    ``chosen`` (the centre the candidate search refined) is returned unchanged when either
-    signal cannot be refined or moves more than max(2, radius) px from it.
-    """
+    """A spot centred on its texture-free light and on luma (crop COLMAP px), combined by
+    :func:`combine_centres`; ``chosen`` (the centre the candidate search refined) is returned
+    unchanged when either signal cannot be refined or moves more than max(2, radius) px
+    from it."""
     reach = max(2.0, guess.radius_px)
-    both = [refine_spot(planes, guess, refine, sigma_model=sigma_model, signal=s)
-            for s in ("light", "luma")]
+    light, luma = (refine_spot(planes, guess, refine, sigma_model=sigma_model, signal=s)
+                   for s in ("light", "luma"))
     if not all(math.isfinite(c[2]) and math.hypot(c[0] - chosen[0], c[1] - chosen[1]) <= reach
-               for c in both):
+               for c in (light, luma)):
         return chosen
-    (xa, ya, sa), (xb, yb, sb) = both
+    return combine_centres(light, luma, chosen, guess.bright,
+                           luma_dominant(planes.laser_rgb), sigma_model.disagreement_gain)
+
+
+def combine_centres(light: Centre, luma: Centre, chosen: Centre, clipped: bool, green: bool,
+                    disagreement_gain: float) -> Centre:
+    """One centre (x, y, σ; px) from a spot's two signals' centres and the search's ``chosen``.
+
+    A green (luma-dominant) laser's spot: the weighted mean of the two when its laser channel
+    clips (``clipped``) and they agree; else ``chosen``. Two centres of a clipped core that
+    disagree and whose σ differ by TWO_SIGNALS_SIGMA_RATIO or more: the one of the smaller σ
+    (the other one's light is not point-symmetric about it, or its window moved it); for a red
+    or blue laser only when that is luma (its usual signal is the texture-free light, and luma
+    holds the scene's texture). σ gains the disagreement term, except where a red or blue
+    spot keeps ``chosen``.
+    """
+    (xa, ya, sa), (xb, yb, sb) = light, luma
     apart = math.hypot(xa - xb, ya - yb)
-    spread = sigma_model.disagreement_gain * apart
-    if not guess.bright or apart > min(TWO_SIGNALS_AGREE * math.hypot(sa, sb),
-                                       TWO_SIGNALS_MAX_APART_PX):
-        return chosen[0], chosen[1], math.hypot(chosen[2], spread)
-    wa, wb = 1.0 / sa**2, 1.0 / sb**2
-    return ((wa * xa + wb * xb) / (wa + wb), (wa * ya + wb * yb) / (wa + wb),
-            math.hypot(min(sa, sb), spread))
+    spread = disagreement_gain * apart
+    agree = apart <= min(TWO_SIGNALS_AGREE * math.hypot(sa, sb), TWO_SIGNALS_MAX_APART_PX)
+    if green and clipped and agree:
+        wa, wb = 1.0 / sa**2, 1.0 / sb**2
+        return ((wa * xa + wb * xb) / (wa + wb), (wa * ya + wb * yb) / (wa + wb),
+                math.hypot(min(sa, sb), spread))
+    sharper = light if sa < sb else luma
+    if (clipped and not agree and TWO_SIGNALS_SIGMA_RATIO * min(sa, sb) <= max(sa, sb)
+            and (green or sharper is luma)):
+        return sharper[0], sharper[1], math.hypot(sharper[2], spread)
+    if not green:
+        return chosen
+    return chosen[0], chosen[1], math.hypot(chosen[2], spread)
 
 
 def _local_planes(image_rgb: NDArray[np.uint8], m: Measure,
@@ -113,9 +144,10 @@ def _local_planes(image_rgb: NDArray[np.uint8], m: Measure,
 
 def _two_signals_apply(m: Measure, laser_rgb: tuple[float, float, float],
                        options: DetectionOptions) -> bool:
-    """Whether :func:`two_signal_centre` refines this chosen spot."""
-    return (options.two_signal_centre and luma_dominant(np.asarray(laser_rgb))
-            and not m.beside)
+    """Whether :func:`two_signal_centre` refines this chosen spot: a green laser's, or a red
+    or blue laser's clipped core (``m.bright``), unless refined beside an overlapping one."""
+    return (options.two_signal_centre and not m.beside
+            and (m.bright or luma_dominant(np.asarray(laser_rgb))))
 
 
 def _fit_applies(m: Measure, options: DetectionOptions) -> bool:

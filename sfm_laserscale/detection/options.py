@@ -108,9 +108,12 @@ class DetectionOptions:
     - ``refine``: "centroid" (Gaussian-windowed centroid iterated to its fixed point, the
       default) or "gaussian" (2D Gaussian fit to the unclipped pixels). Spots cut by the image
       border always use the fit.
-    - ``two_signal_centre``: a luma-dominant (green) laser's chosen spot is refined on both of
-      its signals, the texture-free light and luma: a clipped core takes their mean when they
-      agree, and every such spot's σ gains their disagreement (:mod:`.centre`).
+    - ``two_signal_centre``: a luma-dominant (green) laser's chosen spot, and any laser's
+      clipped core, is refined on both of its signals, the texture-free light and luma: a
+      green clipped core takes their mean when they agree, a clipped core whose two centres
+      disagree takes the one of a 3× smaller σ (a red or blue core only luma's), and the σ
+      gains their disagreement (a red or blue core's only where it takes luma's;
+      :mod:`.centre`).
     - ``fit_agree_sigmas``: an unclipped chosen spot takes the centre of a 2D Gaussian fit
       where the centroid's window was too wide for it (``centre.WIDE_WINDOW`` × the fitted σ
       or more) and the fit lies within this many of its σ from the centroid

@@ -14,13 +14,14 @@ minus a plane fitted on a ring outside the spot's support:
   texture's colour (:func:`spot_light`), so the texture cancels.
 
 Pixels where the signal is undetermined (clipped) inside the support are set to the highest
-determined value there (a flat top); for a luma-dominant laser such a spot's signal is taken above
-CLIPPED_CUT of that plateau (a thresholded centroid: a glow line or the luma texture beside the
-core does not pull its centre; red and blue spots, on the texture-free signal, only lost
-accuracy with it). The centre is a Gaussian-windowed centroid iterated to its
-fixed point (unbiased for any point-symmetric spot, saturated or not) or, optionally and for
-spots cut by the image border, a 2D Gaussian fit to the unclipped pixels. Overlapping spots are
-refined with each other's modelled light removed (:class:`NeighbourModel`).
+determined value there (a flat top); for a luma-dominant laser, and for any spot read on luma,
+such a spot's signal is taken above CLIPPED_CUT of that plateau (a thresholded centroid: a glow
+line or the luma texture beside the core does not pull its centre; red and blue spots, on the
+texture-free signal, only lost accuracy with it). The centre is a Gaussian-windowed centroid
+iterated to its fixed point (unbiased for any point-symmetric spot, saturated or not) or,
+optionally and for spots cut by the image border, a 2D Gaussian fit to the unclipped pixels.
+Overlapping spots are refined with each other's modelled light removed
+(:class:`NeighbourModel`).
 
 The localisation sigma is the ring noise through the centroid plus what noise does not show
 (:class:`~sfm_laserscale.detection.options.SigmaModel`): light that is not point-symmetric
@@ -228,8 +229,9 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
     refined beside them use the texture-free signal only (one unit for all). Otherwise a
     luma-dominant laser's spot uses luma when its SNR there is at least LUMA_SNR_RATIO of the
     texture-free signal's (texture strong in luma, e.g. green water, keeps the latter).
-    ``signal`` (one of SIGNALS): "auto" chooses so; "light" and "luma" force that signal (a
-    luma-dominant laser's spot without neighbours; any other keeps the texture-free signal).
+    ``signal`` (one of SIGNALS): "auto" chooses so; "light" and "luma" force that signal on a
+    spot without neighbours ("luma" also for a red or blue laser's clipped core, which
+    :mod:`.centre` weighs against its texture-free light).
     ``texture``: the texture colour the light is freed of (None: the ring's,
     :func:`texture_direction`); a second capture of the same place is read with the same
     weights by giving it the first patch's ``texture``.
@@ -255,7 +257,8 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
         value = value - nb.at(gx, gy)
     sig = _plane_residual(value, gx, gy, ring)
     from_colour = True
-    if allow_luma and not neighbours and luma_dominant(planes.laser_rgb) and signal != "light":
+    green = luma_dominant(planes.laser_rgb)
+    if allow_luma and not neighbours and (signal == "luma" or (green and signal == "auto")):
         sig_l = _plane_residual(rgb @ LUMA, gx, gy, ring)
         if signal == "luma" or (_snr(sig_l, ring, inner & ~clipped)
                                 >= LUMA_SNR_RATIO * _snr(sig, ring, inner & ~undetermined)):
@@ -265,7 +268,7 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
         ok = inner & ~undetermined
         level = float(sig[ok].max()) if ok.any() else float(sig.max())
         sig[top] = level
-        if allow_luma and luma_dominant(planes.laser_rgb):  # a neighbour's model keeps it all
+        if allow_luma and (green or not from_colour):  # a neighbour's model keeps it all
             sig = sig - CLIPPED_CUT * level
     h, w = planes.laser.shape
     cut = bool(x0 - support_px < 0 or y0 - support_px < 0 or x0 + support_px > w
