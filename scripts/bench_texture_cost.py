@@ -79,8 +79,8 @@ def signal_errors(planes: Planes, dark: Planes, guess: SpotGuess,
     """(error with the scene, error without it) px of one spot's centroid on one signal, or
     None when the signal cannot be read there."""
     seen = spot_patch(planes, guess, guess.patch_support, signal=signal)
-    if seen is None or (signal == "luma") == seen.from_colour:
-        return None  # the other signal was read (a laser that is not luma-dominant)
+    if seen is None:
+        return None
     scene = spot_patch(dark, guess, guess.patch_support, signal=signal, texture=seen.texture)
     if scene is None:
         return None

@@ -229,9 +229,9 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
     refined beside them use the texture-free signal only (one unit for all). Otherwise a
     luma-dominant laser's spot uses luma when its SNR there is at least LUMA_SNR_RATIO of the
     texture-free signal's (texture strong in luma, e.g. green water, keeps the latter).
-    ``signal`` (one of SIGNALS): "auto" chooses so; "light" and "luma" force that signal on a
-    spot without neighbours ("luma" also for a red or blue laser's clipped core, which
-    :mod:`.centre` weighs against its texture-free light).
+    ``signal`` (one of SIGNALS): "auto" chooses so (a red or blue laser's spot: the
+    texture-free light); "light" and "luma" force that signal on a spot without neighbours,
+    of any laser (:mod:`.centre` weighs a red or blue clipped core's luma against its light).
     ``texture``: the texture colour the light is freed of (None: the ring's,
     :func:`texture_direction`); a second capture of the same place is read with the same
     weights by giving it the first patch's ``texture``.
