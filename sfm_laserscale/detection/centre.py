@@ -118,10 +118,11 @@ def combine_centres(light: Centre, luma: Centre, chosen: Centre, clipped: bool, 
         wa, wb = 1.0 / sa**2, 1.0 / sb**2
         return ((wa * xa + wb * xb) / (wa + wb), (wa * ya + wb * yb) / (wa + wb),
                 math.hypot(min(sa, sb), spread))
-    sharper = light if sa < sb else luma
+    luma_sharper = sb < sa
     if (clipped and not agree and TWO_SIGNALS_SIGMA_RATIO * min(sa, sb) <= max(sa, sb)
-            and (green or sharper is luma)):
-        return sharper[0], sharper[1], math.hypot(sharper[2], spread)
+            and (green or luma_sharper)):
+        x, y, sigma = luma if luma_sharper else light
+        return x, y, math.hypot(sigma, spread)
     if not green:
         return chosen
     return chosen[0], chosen[1], math.hypot(chosen[2], spread)
