@@ -173,6 +173,8 @@ def parse_args(argv: Sequence[str] | None, description: str) -> argparse.Namespa
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--markdown", action="store_true")
+    ap.add_argument("--json", default=None, help="also write the per-spot records here "
+                    "(scripts that keep them)")
     return ap.parse_args(argv)
 
 
