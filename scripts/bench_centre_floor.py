@@ -164,8 +164,10 @@ def summary_rows(jobs: Sequence[Job], results: Sequence[list[tuple[float, float]
     return rows
 
 
-def parse_args(argv: Sequence[str] | None, description: str) -> argparse.Namespace:
-    """The options of a benchmark over the physical generator's conditions."""
+def parse_args(argv: Sequence[str] | None, description: str, records: bool = False
+               ) -> argparse.Namespace:
+    """The options of a benchmark over the physical generator's conditions (``records``: and
+    ``--json``, where a script writes its per-spot records)."""
     ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--per-condition", type=int, default=20)
     ap.add_argument("--size", default="1920x1080")
@@ -173,8 +175,8 @@ def parse_args(argv: Sequence[str] | None, description: str) -> argparse.Namespa
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--markdown", action="store_true")
-    ap.add_argument("--json", default=None, help="also write the per-spot records here "
-                    "(scripts that keep them)")
+    if records:
+        ap.add_argument("--json", default=None, help="also write the per-spot records here")
     return ap.parse_args(argv)
 
 
@@ -191,11 +193,12 @@ def make_jobs(args: argparse.Namespace) -> list[Job]:
             for i in range(args.per_condition)]
 
 
-def run_all(argv: Sequence[str] | None, description: str, worker: Callable[[Job], Any]
-            ) -> tuple[argparse.Namespace, list[Job], list[Any]] | None:
-    """The options, the jobs and ``worker``'s result for each (in ``--workers`` processes);
-    None, with the error printed, when the options name unknown conditions."""
-    args = parse_args(argv, description)
+def run_all(argv: Sequence[str] | None, description: str, worker: Callable[[Job], Any],
+            records: bool = False) -> tuple[argparse.Namespace, list[Job], list[Any]] | None:
+    """The options (``records``: with ``--json``), the jobs and ``worker``'s result for each
+    (in ``--workers`` processes); None, with the error printed, when the options name unknown
+    conditions."""
+    args = parse_args(argv, description, records)
     try:
         jobs = make_jobs(args)
     except ValueError as err:

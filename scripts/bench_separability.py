@@ -244,7 +244,7 @@ def signal_rows(records: Sequence[dict[str, Any]]) -> list[tuple[Any, ...]]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ran = run_all(argv, __doc__.split("\n\n")[0], run_job)
+    ran = run_all(argv, __doc__.split("\n\n")[0], run_job, records=True)
     if ran is None:
         return 2
     args, _, results = ran

@@ -10,7 +10,7 @@ from sfm_laserscale.rig import rig_from_dict
 from sfm_laserscale.synthetic.underwater import Frame
 from tests.script_loader import load_script
 
-load_script("bench_centre_floor")  # imported by bench_separability
+floor = load_script("bench_centre_floor")  # imported by bench_separability
 sep = load_script("bench_separability")
 
 #: f 1000 px, principal point (960, 540); a beam 0.1 m right of the camera along its axis is
@@ -115,3 +115,12 @@ def test_the_signal_table_counts_each_signal_alone() -> None:
             {"condition": "c", "rivals_by_signal": [[0, 1, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0],
                                                     [0, 0, 0]]}]
     assert sep.signal_rows(recs) == [("c", 2, 1, 1, 2, 2, 1)]
+
+
+def test_only_a_script_that_keeps_records_takes_json(capsys: pytest.CaptureFixture[str]
+                                                     ) -> None:
+    assert floor.parse_args(["--json", "out.json"], "d", records=True).json == "out.json"
+    with pytest.raises(SystemExit):
+        floor.parse_args(["--json", "out.json"], "d")
+    assert sep.main(["--conditions", "nope", "--per-condition", "1"]) == 2
+    assert "nope" in capsys.readouterr().err
