@@ -122,13 +122,14 @@ def image_sigma_px(meta: dict[str, Any], footprint_sigma_px: float) -> float:
     return max(math.sqrt(var), 0.5)
 
 
-def render_job(job: Job) -> tuple[Frame, NDArray[np.uint8]]:
+def render_job(job: Job, laser_free_jpeg: bool = False) -> tuple[Frame, NDArray[np.uint8]]:
     """One job's frame (the benchmark's generator state: seed, condition index, 0, image
-    index) and its capture without the lasers (same noise draws, no JPEG)."""
+    index) and its capture without the lasers (same noise draws; JPEG'd like the frame only
+    with ``laser_free_jpeg``)."""
     ci = list(CONDITIONS).index(job.condition)
     frame = render_frame(job.condition, job.size[0], job.size[1],
                          np.random.default_rng([job.seed, ci, 0, job.index]),
-                         laser_free=True, laser_free_jpeg=False)
+                         laser_free=True, laser_free_jpeg=laser_free_jpeg)
     if frame.image_laser_free_rgb is None:
         raise RuntimeError("the generator gave no laser-free capture")
     return frame, frame.image_laser_free_rgb

@@ -51,7 +51,8 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
-from bench_centre_floor import Job, image_sigma_px, run_all
+from bench_centre_floor import Job, image_sigma_px, render_job, run_all
+from bench_detection_physical import score_frame
 from numpy.typing import NDArray
 from scipy import ndimage
 
@@ -61,12 +62,10 @@ from sfm_laserscale.detection.beams import default_band_px, distance_to_polyline
 from sfm_laserscale.detection.floor import default_floor_radius_px
 from sfm_laserscale.model import Camera
 from sfm_laserscale.rig import Laser, rig_from_dict
-from sfm_laserscale.synthetic.underwater import CONDITIONS, Frame, render_frame
+from sfm_laserscale.synthetic.underwater import Frame
 from sfm_laserscale.synthetic.underwater.sensor import srgb_decode
 
 F64 = NDArray[np.float64]
-#: a spot is found when the detector puts its laser's spot this close (px; as the benchmark)
-MATCH_PX = 1.5
 #: the band's stretch: ranges within this (natural log) of the spot's
 RANGE_LN = 0.1
 #: the five signals, in the order of :func:`signals`
@@ -149,6 +148,21 @@ def rivals(free: F64, region: NDArray[np.bool_], level: float) -> int:
     return int(peaks.sum())
 
 
+def _crop(camera: Camera, whole: F64, truth: tuple[float, float], reach: float
+          ) -> tuple[int, int, int, int] | None:
+    """(x0, y0, x1, y1) of the image holding the beam's image ``whole`` (N, 2) and the spot
+    with ``reach`` px around them; None when the spot lies within ``reach`` of the crop's
+    edge (the image's) or the beam is not in the image."""
+    if len(whole) < 2:
+        return None
+    x0, y0 = (max(0, int(math.floor(min(whole[:, k].min(), truth[k]) - reach))) for k in (0, 1))
+    x1 = min(camera.width, int(math.ceil(max(whole[:, 0].max(), truth[0]) + reach)))
+    y1 = min(camera.height, int(math.ceil(max(whole[:, 1].max(), truth[1]) + reach)))
+    if not (x0 + reach <= truth[0] <= x1 - reach and y0 + reach <= truth[1] <= y1 - reach):
+        return None
+    return x0, y0, x1, y1
+
+
 def separate_spot(frame: Frame, camera: Camera, laser: Laser, truth: tuple[float, float],
                   channel: int
                   ) -> tuple[bool, bool, bool, int, str, tuple[tuple[int, int, int], ...]] | None:
@@ -163,14 +177,10 @@ def separate_spot(frame: Frame, camera: Camera, laser: Laser, truth: tuple[float
                             range_m * math.exp(RANGE_LN))
     whole = beam_stretch(camera, laser, options.min_range_m, options.max_range_m, 256)
     band = default_band_px(camera.width, camera.height)
-    reach = band + BACKGROUND_SIGMAS * 4 * sigma + 4
-    if len(at_range) < 2 or len(whole) < 2:
+    box = _crop(camera, whole, truth, band + BACKGROUND_SIGMAS * 4 * sigma + 4)
+    if len(at_range) < 2 or box is None:
         return None
-    x0, y0 = (max(0, int(math.floor(min(whole[:, k].min(), truth[k]) - reach))) for k in (0, 1))
-    x1 = min(camera.width, int(math.ceil(max(whole[:, 0].max(), truth[0]) + reach)))
-    y1 = min(camera.height, int(math.ceil(max(whole[:, 1].max(), truth[1]) + reach)))
-    if not (x0 + reach <= truth[0] <= x1 - reach and y0 + reach <= truth[1] <= y1 - reach):
-        return None
+    x0, y0, x1, y1 = box
     free_rgb = frame.image_laser_free_rgb
     if free_rgb is None:
         raise ValueError("the frame has no laser-free capture")
@@ -195,14 +205,13 @@ def separate_spot(frame: Frame, camera: Camera, laser: Laser, truth: tuple[float
 
 
 def run_job(job: Job) -> list[dict[str, Any]]:
-    """Every true spot's :class:`SpotSeparation` of one frame (as dicts)."""
-    ci = list(CONDITIONS).index(job.condition)
-    frame = render_frame(job.condition, job.size[0], job.size[1],
-                         np.random.default_rng([job.seed, ci, 0, job.index]), laser_free=True)
+    """Every true spot's :class:`SpotSeparation` of one frame (as dicts); found as the
+    benchmark scores it (``bench_detection_physical.score_frame``)."""
+    frame, _ = render_job(job, laser_free_jpeg=True)
     camera = parse_camera(frame.camera_spec)
     rig = rig_from_dict(tomllib.loads(frame.rig_toml))
-    result = detect_spots(frame.image_rgb, camera, rig, DetectionOptions())
-    reported = {s.laser: (s.x, s.y) for s in result.spots}
+    found = {f["laser"] for f in score_frame(frame, detect_spots(frame.image_rgb, camera, rig,
+                                                                  DetectionOptions()))["found"]}
     out = []
     for laser in rig.lasers:
         truth = frame.truth.get(laser.name)
@@ -211,11 +220,9 @@ def run_job(job: Job) -> list[dict[str, Any]]:
         rgb = np.asarray(laser.expected_rgb or (1.0, 1.0, 1.0))
         sep = separate_spot(frame, camera, laser, (float(truth[0]), float(truth[1])),
                             int(np.argmax(rgb)))
-        if sep is None:
-            continue
-        got = reported.get(laser.name)
-        found = got is not None and math.dist(got, truth) <= MATCH_PX
-        out.append(asdict(SpotSeparation(job.condition, job.index, laser.name, found, *sep)))
+        if sep is not None:
+            out.append(asdict(SpotSeparation(job.condition, job.index, laser.name,
+                                             laser.name in found, *sep)))
     return out
 
 

@@ -11,6 +11,7 @@ from sfm_laserscale.synthetic.underwater import Frame
 from tests.script_loader import load_script
 
 floor = load_script("bench_centre_floor")  # imported by bench_separability
+load_script("bench_detection_physical")  # imported by bench_separability
 sep = load_script("bench_separability")
 
 #: f 1000 px, principal point (960, 540); a beam 0.1 m right of the camera along its axis is
