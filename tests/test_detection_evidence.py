@@ -14,6 +14,7 @@ from sfm_laserscale.detection import DetectionOptions, beam_polyline_px, detect_
 from sfm_laserscale.detection.beams import beam_samples, range_along_beam, scene_mask
 from sfm_laserscale.detection.joint import (
     DEPTH,
+    RESCUE_BESIDE_ONE_BEAM,
     Option,
     all_whitened_value,
     choose_jointly,
@@ -153,8 +154,9 @@ def test_whitened_clipped_core_taken_only_at_the_other_spots_range() -> None:
     # B's and C's best are whitened clipped cores (score 0.05, 0.6 without the colour against
     # them); A is a laser-coloured spot at 3 m
     def opts(b_range: float, c_range: float) -> dict[str, list[Option]]:
-        return {"A": [Option(0, 0.8, 3.0)], "B": [Option(1, 0.05, b_range, rescue=0.6)],
-                "C": [Option(2, 0.05, c_range, rescue=0.6)]}
+        return {"A": [Option(0, 0.8, 3.0)],
+                "B": [Option(1, 0.05, b_range, rescue=0.6, beam_share=0.05)],
+                "C": [Option(2, 0.05, c_range, rescue=0.6, beam_share=0.05)]}
 
     chosen = choose_jointly(opts(3.2, 6.0), 0.25).chosen
     assert {n: (o.index, o.rescued) for n, o in chosen.items()} == {"A": (0, False),
@@ -168,6 +170,24 @@ def test_whitened_clipped_core_taken_only_at_the_other_spots_range() -> None:
     # a rescue below min_score is never taken
     assert _taken({"A": [Option(0, 0.8, 3.0)], "B": [Option(1, 0.05, 3.0, rescue=0.2)]}) == {
         "A": 0}
+
+
+def test_a_core_rescued_beside_one_spot_lies_on_its_beam() -> None:
+    """A laser-free 4000 × 3000 frame: one laser-coloured blob taken on its own evidence (an
+    organism, score 0.3) and glints in the other bands, one at its range but across its band.
+    Beside that single spot the glint is not taken (nor is the blob then, alone); a core near
+    its beam's image is, and beside two spots a core across the band still is."""
+    blob = Option(0, 0.3, 2.0)
+    across, near = RESCUE_BESIDE_ONE_BEAM + 0.15, RESCUE_BESIDE_ONE_BEAM - 0.05
+
+    def glint(share: float) -> Option:
+        return Option(1, 0.04, 2.1, rescue=0.5, beam_share=share)
+
+    assert _taken({"A": [blob], "B": [glint(across)]}) == {"A": 0}
+    assert combination_value({"A": blob, "B": replace(glint(across), rescued=True)}, 0.25) is None
+    assert _taken({"A": [blob], "B": [glint(near)]}) == {"A": 0, "B": 1}
+    two = {"A": [blob], "C": [Option(2, 0.4, 2.05)], "B": [glint(across)]}
+    assert _taken(two) == {"A": 0, "B": 1, "C": 2}
 
 
 def test_whitened_cores_alone_are_taken_only_on_their_beams_at_one_range() -> None:

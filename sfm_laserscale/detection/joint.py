@@ -30,7 +30,10 @@ each candidate to one laser (:func:`combination_value`):
   channels to clipping too) whiten its rim, so it reads like a glint (``Measure.whitened``). It
   may be taken with CLIPPED_COLOUR for its colour term (``Option.rescue``) where its range
   agrees within RESCUE_RANGE_LN with r_ref of options taken on their own evidence: a glint sits
-  anywhere along a band, a laser's spot at the range of the other spots. Whitened cores that
+  anywhere along a band, a laser's spot at the range of the other spots. Beside a single option
+  taken on its own evidence, a rescued core must also lie within RESCUE_BESIDE_ONE_BEAM ×
+  ``band_px`` of its beam's image, where nearly every laser's spot lies: one option's range is
+  weak backing, and a band dense with glints holds one at any range. Whitened cores that
   agree only with each other are taken only as a combination of ALL_WHITENED_MIN or more, each
   within ALL_WHITENED_BEAM × ``band_px`` (how far a spot may lie from its beam's image) of that
   image and all within ALL_WHITENED_RANGE_LN of their median range (:func:`all_whitened_value`):
@@ -70,6 +73,9 @@ MIN_CONSIDERED = 0.02
 CLIPPED_COLOUR = 1.0
 #: … agrees: |ln(range / the floor range of the options taken on their own)| at most this
 RESCUE_RANGE_LN = 0.15
+#: a core rescued beside a single option taken on its own evidence lies within this many
+#: ``band_px`` of its beam's image (nearly every laser's spot does: docs/DETECTION.md)
+RESCUE_BESIDE_ONE_BEAM = 0.2
 #: factor of an option with laser light farther along its beam
 DEPTH = 0.1
 #: whitened cores agreeing only with each other are taken when this many or more …
@@ -204,6 +210,8 @@ def combination_value(combo: dict[str, Option], min_score: float,
     rescues = [o for o in combo.values() if o.rescued]
     if not plain:
         return all_whitened_value(combo, min_score)
+    if len(plain) == 1 and any(o.beam_share > RESCUE_BESIDE_ONE_BEAM for o in rescues):
+        return None
     depth = _depths(combo)
     rescue_values = [o.rescue * depth[n] for n, o in combo.items() if o.rescued]
     if rescue_values and min(rescue_values) < min_score:
