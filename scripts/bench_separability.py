@@ -57,7 +57,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from sfm_laserscale.commands.detect import parse_camera
-from sfm_laserscale.detection import DetectionOptions, detect_spots
+from sfm_laserscale.detection import DetectionOptions, beam_polyline_px, detect_spots
 from sfm_laserscale.detection.beams import default_band_px, distance_to_polyline
 from sfm_laserscale.detection.floor import default_floor_radius_px
 from sfm_laserscale.model import Camera
@@ -130,13 +130,11 @@ def band_mask(shape: tuple[int, int], corner: tuple[int, int], segment_px: F64,
 
 def beam_stretch(camera: Camera, laser: Laser, near_m: float, far_m: float, steps: int = 64
                  ) -> F64:
-    """(steps, 2) pixels of a beam's image between ranges ``near_m`` and ``far_m``, in the
-    image (points behind the camera or outside the image left out)."""
+    """(K, 2) pixels of a beam's image between ranges ``near_m`` and ``far_m``, near end
+    first (:func:`~sfm_laserscale.detection.beam_polyline_px`), those in the image only."""
     if laser.origin is None or laser.direction is None:
         raise ValueError(f"laser {laser.name} is not calibrated")
-    ranges = np.exp(np.linspace(math.log(near_m), math.log(far_m), steps))
-    points = laser.origin[None, :] + ranges[:, None] * laser.direction[None, :]
-    px = camera.project(points[points[:, 2] > 1e-6])
+    px = beam_polyline_px(camera, laser, near_m, far_m, steps)[::-1]
     inside = ((px[:, 0] >= 0) & (px[:, 0] <= camera.width) & (px[:, 1] >= 0)
               & (px[:, 1] <= camera.height))
     return px[inside]
