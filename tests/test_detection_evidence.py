@@ -21,6 +21,7 @@ from sfm_laserscale.detection.joint import (
     combination_value,
     depth_term,
     range_term,
+    why_not_rescued,
 )
 from sfm_laserscale.detection.score import UNMEASURED_UNCLIPPED, AddedLight, colour_evidence
 from sfm_laserscale.model import Camera
@@ -188,6 +189,30 @@ def test_a_core_rescued_beside_one_spot_lies_on_its_beam() -> None:
     assert _taken({"A": [blob], "B": [glint(near)]}) == {"A": 0, "B": 1}
     two = {"A": [blob], "C": [Option(2, 0.4, 2.05)], "B": [glint(across)]}
     assert _taken(two) == {"A": 0, "B": 1, "C": 2}
+
+
+def test_a_core_not_rescued_says_which_test_it_failed() -> None:
+    """The reason a whitened core was not taken at its laser's colour names the rescue's test
+    it failed against the spots chosen (the missing laser's explanation shows it)."""
+    blob, other = Option(0, 0.3, 2.0), Option(2, 0.4, 2.05)
+
+    def why(options: dict[str, list[Option]], core: Option) -> str:
+        return why_not_rescued("B", core, choose_jointly(options, 0.25), 0.25)
+
+    across = Option(1, 0.04, 2.1, rescue=0.5, beam_share=0.35)
+    assert why({"A": [blob], "B": [across]}, across) == (
+        "0.35 band_px from its beam's image beside a single spot (at most 0.2)")
+    far = Option(1, 0.04, 3.0, rescue=0.5, beam_share=0.05)
+    assert why({"A": [blob], "C": [other], "B": [far]}, far).startswith(
+        "at 3.00 m along its beam, not at the range of the spots chosen with it (2.")
+    assert "none was" in why({"B": [far]}, far)
+    lit_beyond = Option(1, 0.04, 2.1, rescue=0.5, beam_share=0.05, farther_m=(2.05,))
+    assert why({"A": [blob], "C": [other], "B": [lit_beyond]}, lit_beyond).startswith(
+        "laser light lies farther along its beam")
+    # passing every test, it lost to a better combination (here: its candidate is A's spot)
+    shared = Option(0, 0.04, 2.0, rescue=0.5, beam_share=0.05)
+    assert why({"A": [blob], "C": [other], "B": [shared]}, shared) == (
+        "the combination without it scored higher")
 
 
 def test_whitened_cores_alone_are_taken_only_on_their_beams_at_one_range() -> None:
@@ -421,3 +446,25 @@ def test_a_frame_whose_every_spot_is_a_whitened_core_keeps_its_spots() -> None:
         assert math.dist(xy, frame.truth[laser]) < 0.5
     reasons = {c.laser: c.reason for c in res.candidates if c.laser}
     assert "one of 3 such cores on their beams' lines at one range" in reasons["L1"]
+
+
+def test_a_missing_laser_names_the_rescue_test_its_core_failed() -> None:
+    """``green_all`` frame 9 at 1920 × 1080 (seed 0; rendered by the independent generator):
+    L1 and L4 are clipped cores whose rims read white, at 2.5 m along their beams; the joint
+    choice took only a laser-coloured blob of L3 at 0.57 m (dropped later, alone). Their
+    missing reasons say the cores were not at that range, not that their colour is the
+    scene's."""
+    from sfm_laserscale.commands.detect import parse_camera
+    from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
+
+    ci = list(CONDITIONS).index("green_all")
+    frame = render_frame("green_all", 1920, 1080, np.random.default_rng([0, ci, 0, 9]))
+    res = detect_spots(frame.image_rgb, parse_camera(frame.camera_spec),
+                       rig_from_dict(tomllib.loads(frame.rig_toml)))
+    for laser in ("L1", "L4"):
+        first = res.missing[laser].split("; ")[0]
+        x, y = (float(v) for v in first.split("(")[1].split(")")[0].split(", "))
+        truth = frame.truth[laser]
+        assert truth is not None and math.dist((x, y), truth) < 1.0  # the true core, first
+        assert "not taken at the laser's colour: at 2.5" in first
+        assert "not at the range of the spots chosen with it (0.57 m" in first

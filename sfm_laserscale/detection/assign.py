@@ -32,6 +32,7 @@ from sfm_laserscale.detection.joint import (
     depth_term,
     laser_options,
     range_term,
+    why_not_rescued,
 )
 from sfm_laserscale.detection.options import DetectionOptions
 from sfm_laserscale.detection.score import describe_weakest
@@ -220,6 +221,8 @@ def assign_calibrated(
     for name, ranked in opts.items():
         for o in ranked:
             m = valid[o.index]
+            if m.laser is None and o.rescue >= options.min_score:
+                m.not_rescued[name] = why_not_rescued(name, o, choice, options.min_score)
             if m.laser is None and not m.reason and _score(m, 1.0, name) < options.min_score:
                 m.reason = f"score below min_score for {name}"
     return chosen, missing, dist

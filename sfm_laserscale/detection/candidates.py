@@ -99,6 +99,8 @@ class Measure:
     # laser -> ranges (m) of laser light farther along its beam (assign.py)
     farther_lit: dict[str, tuple[float, ...]] = field(default_factory=dict)
     range_fit: dict[str, float] = field(default_factory=dict)  # laser -> range term (joint.py)
+    # laser -> why this whitened core was not taken at its colour (joint.why_not_rescued)
+    not_rescued: dict[str, str] = field(default_factory=dict)
 
     @property
     def base_score(self) -> float:

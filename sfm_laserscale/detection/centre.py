@@ -30,6 +30,12 @@ refined on luma too, but luma holds more of the scene's texture than of its ligh
 luma's centre only by the σ rule above, and otherwise keeps its centre and σ. Measured in
 docs/DETECTION.md ("Two signals", the twenty-first round).
 
+A clipped core has a third signal: the region where its laser channel clips, whose shape the
+scene's texture and colour do not pull. Its centroid is coarse (whole pixels, a noisy rim), so
+:func:`clipped_core_centre` takes it only where the centre from the two signals states a σ of
+twice the centroid's or more and lies CLIPPED_CENTROID_APART_PX from it, and where the region
+is a compact blob no wider than the spot (docs/DETECTION.md, the twenty-fourth round).
+
 Then :func:`polish_with_fit` fits a 2D Gaussian plus a constant to an unclipped chosen spot
 (:func:`fit_centre`, on the signal and window it was refined on). The centroid's Gaussian
 window is the spot's measured half-maximum radius; where noise or the beam's glow widened that
@@ -51,6 +57,7 @@ from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 
 from sfm_laserscale.detection.candidates import Measure
 from sfm_laserscale.detection.options import DetectionOptions, SigmaModel
@@ -78,6 +85,25 @@ TWO_SIGNALS_SIGMA_RATIO = 3.0
 WIDE_WINDOW = 1.25
 #: pixels of background around a spot's support in the crop it is centred in
 MARGIN_PX = 12
+#: the σ of a clipped core's centroid of clipped pixels (px; their median error on clipped
+#: cores is 0.27 px) …
+CLIPPED_CENTROID_SIGMA_PX = 0.3
+#: … which is taken where the core's centre states a σ of this much or more (px; twice the
+#: centroid's: the two signals disagreed, or a wider window moved the centre) …
+CLIPPED_CENTROID_WHEN_SIGMA_PX = 0.6
+#: … when the centroid lies this far from it or more (px) …
+CLIPPED_CENTROID_APART_PX = 0.8
+#: … and the clipped region is a compact blob of this many pixels or more (fewer are a few
+#: pixels of the rim, whose centroid is no better than the spot's) …
+CLIPPED_CENTROID_MIN_PIXELS = 3
+#: … and of at most this many times the area of the spot's half-maximum disc (a larger one
+#: holds clipped scene beside the spot, which pulls its centroid off the spot) …
+CLIPPED_CENTROID_MAX_AREAS = 1.0
+#: … and of at most this many pixels (a disc 4.4 px in radius): a larger region is a core
+#: merged with its clipped halo or with clipped scene, whose outline follows them, not the core
+CLIPPED_CENTROID_MAX_PIXELS = 60
+#: the clipped region taken is the one with a pixel within this distance of the centre (px)
+CLIPPED_CENTROID_REACH_PX = 1.5
 
 Centre = tuple[float, float, float]  # (x, y, σ), px
 
@@ -128,6 +154,52 @@ def combine_centres(light: Centre, luma: Centre, chosen: Centre, clipped: bool, 
     return chosen[0], chosen[1], math.hypot(chosen[2], spread)
 
 
+def clipped_centroid(clipped: NDArray[np.bool_], x: float, y: float
+                     ) -> tuple[float, float, int] | None:
+    """The centroid (x, y; COLMAP px of the mask) and pixel count of the 8-connected region of
+    ``clipped`` (H, W) with a pixel within CLIPPED_CENTROID_REACH_PX of (x, y); None where
+    there is none."""
+    labels, _ = ndimage.label(clipped, structure=np.ones((3, 3), dtype=bool))
+    rows, cols = np.nonzero(labels)
+    if rows.size == 0:
+        return None
+    dist = np.hypot(cols + 0.5 - x, rows + 0.5 - y)
+    nearest = int(np.argmin(dist))
+    if dist[nearest] > CLIPPED_CENTROID_REACH_PX:
+        return None
+    mine = labels[rows, cols] == labels[rows[nearest], cols[nearest]]
+    return (float(cols[mine].mean()) + 0.5, float(rows[mine].mean()) + 0.5, int(mine.sum()))
+
+
+def clipped_core_centre(clipped: NDArray[np.bool_], guess: SpotGuess, centre: Centre,
+                        disagreement_gain: float) -> Centre:
+    """A clipped core's centre (x, y, σ; crop COLMAP px): the centroid of its clipped pixels
+    (``clipped``, the laser channel at saturation) where ``centre``'s σ is
+    CLIPPED_CENTROID_WHEN_SIGMA_PX or more, the centroid lies CLIPPED_CENTROID_APART_PX or more
+    from it, and the region is compact (CLIPPED_CENTROID_MIN_PIXELS to
+    CLIPPED_CENTROID_MAX_AREAS half-maximum discs of ``guess`` and
+    CLIPPED_CENTROID_MAX_PIXELS); else ``centre``.
+
+    The clipped region's shape does not depend on the scene's texture or colour under it,
+    which pull a centre read from either signal; its centroid is coarser (whole pixels, the
+    rim's noise), so it is taken only where the centre's own σ says the signals disagreed.
+    Its σ: CLIPPED_CENTROID_SIGMA_PX and the disagreement term of the distance moved.
+    """
+    x, y, sigma = centre
+    if sigma < CLIPPED_CENTROID_WHEN_SIGMA_PX:
+        return centre
+    found = clipped_centroid(clipped, x, y)
+    if found is None:
+        return centre
+    cx, cy, n = found
+    apart = math.hypot(cx - x, cy - y)
+    max_pixels = min(CLIPPED_CENTROID_MAX_AREAS * math.pi * max(1.0, guess.radius_px) ** 2,
+                     CLIPPED_CENTROID_MAX_PIXELS)
+    if apart < CLIPPED_CENTROID_APART_PX or not CLIPPED_CENTROID_MIN_PIXELS <= n <= max_pixels:
+        return centre
+    return cx, cy, math.hypot(CLIPPED_CENTROID_SIGMA_PX, disagreement_gain * apart)
+
+
 def _local_planes(image_rgb: NDArray[np.uint8], m: Measure,
                   laser_rgb: tuple[float, float, float], options: DetectionOptions,
                   max_radius: float) -> tuple[Planes, SpotGuess, int, int]:
@@ -168,6 +240,9 @@ def _centre(image_rgb: NDArray[np.uint8], m: Measure, laser_rgb: tuple[float, fl
     centre = start
     if both:
         centre = two_signal_centre(planes, guess, options.refine, options.sigma_model, centre)
+        if guess.bright:
+            centre = clipped_core_centre(planes.clipped_laser, guess, centre,
+                                         options.sigma_model.disagreement_gain)
     if fit:
         centre = fit_centre(planes, replace(guess, x=centre[0], y=centre[1]), centre,
                             options.fit_agree_sigmas)

@@ -4,8 +4,9 @@ The reason names up to :data:`NEAR_MISSES` candidates within the laser's band, b
 (measured ones by their score for this laser, then the others by response), each with its
 position, score and why it was not taken: the hard test it failed ("weak (SNR 3.1 < 6)",
 "too large to be a spot ..."), its weakest evidence ("colour of the scene, not of the laser
-..."), or the laser that took it. With nothing in the band it says so, and where the nearest
-candidate lay.
+..."), the test of the joint choice that a clipped core whose colour cannot be read failed
+(:func:`~sfm_laserscale.detection.joint.why_not_rescued`), or the laser that took it. With
+nothing in the band it says so, and where the nearest candidate lay.
 """
 
 from __future__ import annotations
@@ -33,6 +34,10 @@ def _line(m: Measure, las: Laser, d: float, band: float, options: DetectionOptio
         return f"{where} was taken by {m.laser}"
     beam = float(beam_term(np.array([d]), band)[0])
     score = float(np.prod(list(evidence(m, beam, las.name).values())))
+    if score < options.min_score and las.name in m.not_rescued:
+        return (f"{where} score {score:.2f} < min_score {options.min_score:g}: a clipped core "
+                f"whose colour cannot be read, not taken at the laser's colour: "
+                f"{m.not_rescued[las.name]}")
     if score < options.min_score:
         return (f"{where} score {score:.2f} < min_score {options.min_score:g}: "
                 f"{why_weak(m, beam, las.name)}")

@@ -295,6 +295,28 @@ def choose_jointly(options: dict[str, list[Option]], min_score: float) -> Choice
     return best
 
 
+def why_not_rescued(name: str, o: Option, choice: Choice, min_score: float) -> str:
+    """Why laser ``name``'s whitened core ``o`` (``o.rescue`` reaching ``min_score``) was not
+    taken with CLIPPED_COLOUR by ``choice``: the rescue's test it fails against the spots
+    taken, in words."""
+    plain = {n: p for n, p in choice.chosen.items() if not p.rescued and n != name}
+    if not plain:
+        return (f"taken only at the range of a spot of another laser, or with "
+                f"{ALL_WHITENED_MIN - 1} more such cores on their beams' lines at one range; "
+                "none was")
+    if len(plain) == 1 and o.beam_share > RESCUE_BESIDE_ONE_BEAM:
+        return (f"{o.beam_share:.2f} band_px from its beam's image beside a single spot "
+                f"(at most {RESCUE_BESIDE_ONE_BEAM:g})")
+    if not agrees(o.range_m, choice.floor_m):
+        return (f"at {o.range_m:.2f} m along its beam, not at the range of the spots chosen "
+                f"with it ({choice.floor_m:.2f} m, within "
+                f"{100 * math.expm1(RESCUE_RANGE_LN):.0f} %)")
+    depth = depth_term(o, [p.range_m for p in plain.values()])
+    if o.rescue * depth < min_score:
+        return "laser light lies farther along its beam (a particle lit in the water or glow)"
+    return "the combination without it scored higher"
+
+
 def agrees(range_m: float, ref_m: float) -> bool:
     """Whether a range lies within RESCUE_RANGE_LN (log ratio) of a reference range."""
     return math.isfinite(range_m) and abs(math.log(range_m / ref_m)) <= RESCUE_RANGE_LN
