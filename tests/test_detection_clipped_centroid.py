@@ -2,7 +2,7 @@
 
 Closed-form masks (the region chosen, its centroid and size), the rule on given centres (σ,
 distance and compactness gates; the σ taken), and physical frames of the independent generator
-where the scene's texture pulled both signals of a clipped core 1.4-2.3 px off.
+where the scene under a clipped core pulled both of its signals 1.4-1.5 px off.
 """
 
 from __future__ import annotations
@@ -17,11 +17,12 @@ import pytest
 from sfm_laserscale.commands.detect import parse_camera
 from sfm_laserscale.detection import DetectionOptions, centre, detect_spots
 from sfm_laserscale.detection.centre import clipped_centroid, clipped_core_centre
+from sfm_laserscale.detection.options import SigmaModel
 from sfm_laserscale.detection.refine import SpotGuess
 from sfm_laserscale.rig import rig_from_dict
 from sfm_laserscale.synthetic.underwater import CONDITIONS, Frame, render_frame
 
-GAIN = 0.354  # SigmaModel's disagreement gain
+GAIN = SigmaModel().disagreement_gain
 
 
 def _disc(cx: float, cy: float, r: float, shape: tuple[int, int] = (40, 40)) -> np.ndarray:
@@ -48,7 +49,7 @@ def test_an_uncertain_centre_moves_to_the_clipped_centroid() -> None:
     guess = SpotGuess(21.0, 20.5, 2.5, 6.0, bright=True)
     x, y, sigma = clipped_core_centre(mask, guess, (21.0, 20.5, 0.7), GAIN)
     assert (x, y) == pytest.approx((20.0, 20.0))
-    assert sigma == pytest.approx(math.hypot(0.3, GAIN * math.hypot(1.0, 0.5)))
+    assert sigma == pytest.approx(math.hypot(0.3, 0.354 * math.hypot(1.0, 0.5)), abs=1e-3)
 
 
 @pytest.mark.parametrize(
