@@ -451,9 +451,9 @@ def test_a_frame_whose_every_spot_is_a_whitened_core_keeps_its_spots() -> None:
 def test_a_missing_laser_names_the_rescue_test_its_core_failed() -> None:
     """``green_all`` frame 9 at 1920 × 1080 (seed 0; rendered by the independent generator):
     L1 and L4 are clipped cores whose rims read white, at 2.5 m along their beams; the joint
-    choice took only a laser-coloured blob of L3 at 0.57 m (dropped later, alone). Their
-    missing reasons say the cores were not at that range, not that their colour is the
-    scene's."""
+    choice took only a laser-coloured blob of L3 at 0.57 m, dropped later as alone. Their
+    missing reasons say the cores were not at that range (not that their colour is the
+    scene's), and that the L3 spot was dropped."""
     from sfm_laserscale.commands.detect import parse_camera
     from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
 
@@ -468,3 +468,5 @@ def test_a_missing_laser_names_the_rescue_test_its_core_failed() -> None:
         assert truth is not None and math.dist((x, y), truth) < 1.0  # the true core, first
         assert "not taken at the laser's colour: at 2.5" in first
         assert "not at the range of the spots chosen with it (0.57 m" in first
+        assert first.endswith("16 %), and the L3 spot chosen with it was dropped afterwards, "
+                              "alone in its image")

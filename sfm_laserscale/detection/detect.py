@@ -103,7 +103,8 @@ def _drop_alone(rig: Rig, valid: list[Measure], chosen: dict[str, int], unseen: 
                 options: DetectionOptions) -> None:
     """In place (``chosen``): a spot alone in its image (the only laser's spot, with two or more
     other calibrated beams in view; ``unseen``: lasers whose beam is outside the image) is
-    dropped when it scores below ``options.alone_min_score``: nothing corroborates it."""
+    dropped when it scores below ``options.alone_min_score``: nothing corroborates it. The
+    reasons of whitened cores judged beside it (``Measure.not_rescued``) say so."""
     in_view = [las for las in rig.lasers if las.calibrated and las.name not in unseen]
     if len(chosen) != 1 or len(in_view) < 3:
         return
@@ -116,6 +117,11 @@ def _drop_alone(rig: Rig, valid: list[Measure], chosen: dict[str, int], unseen: 
                 f"{options.alone_min_score:g} (no other laser's spot, {len(in_view) - 1} other "
                 "beams in view)")
     del chosen[name]
+    for other in valid:  # cores judged beside it by the joint choice (joint.why_not_rescued)
+        for laser, why in other.not_rescued.items():
+            if laser != name and not why.endswith("none was"):
+                other.not_rescued[laser] = (f"{why}, and the {name} spot chosen with it was "
+                                            "dropped afterwards, alone in its image")
 
 
 def detect_spots(
