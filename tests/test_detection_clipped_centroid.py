@@ -7,20 +7,16 @@ where the scene under a clipped core pulled both of its signals 1.4-1.5 px off.
 
 from __future__ import annotations
 
-import functools
 import math
-import tomllib
 
 import numpy as np
 import pytest
 
-from sfm_laserscale.commands.detect import parse_camera
-from sfm_laserscale.detection import DetectionOptions, centre, detect_spots
+from sfm_laserscale.detection import centre
 from sfm_laserscale.detection.centre import clipped_centroid, clipped_core_centre
 from sfm_laserscale.detection.options import SigmaModel
 from sfm_laserscale.detection.refine import SpotGuess
-from sfm_laserscale.rig import rig_from_dict
-from sfm_laserscale.synthetic.underwater import CONDITIONS, Frame, render_frame
+from tests.test_detection_centre_two_signals import _detect
 
 GAIN = SigmaModel().disagreement_gain
 
@@ -69,20 +65,6 @@ def test_the_centre_is_kept(mask: np.ndarray, start: tuple[float, float, float],
     assert clipped_core_centre(mask, guess, start, GAIN) == start
 
 
-@functools.lru_cache(maxsize=2)
-def _render(condition: str, index: int) -> Frame:
-    """A 1920 × 1080 frame of the physical benchmark (seed 0)."""
-    ci = list(CONDITIONS).index(condition)
-    return render_frame(condition, 1920, 1080, np.random.default_rng([0, ci, 0, index]))
-
-
-def _detect(condition: str, index: int) -> tuple[dict, dict]:
-    frame = _render(condition, index)
-    rig = rig_from_dict(tomllib.loads(frame.rig_toml))
-    res = detect_spots(frame.image_rgb, parse_camera(frame.camera_spec), rig, DetectionOptions())
-    return {s.laser: s for s in res.spots}, frame.truth
-
-
 @pytest.mark.parametrize(("condition", "index", "laser"),
                          [("strobe_hotspots", 13, "L3"), ("green_all", 14, "L1")])
 def test_clipped_cores_pulled_by_the_scene_are_found(
@@ -91,9 +73,9 @@ def test_clipped_cores_pulled_by_the_scene_are_found(
     both signals of the core hold the scene beside it; the centre chosen was 1.4-1.5 px off
     with σ 0.6-0.7 px, its clipped pixels' centroid lies within 0.6 px."""
     monkeypatch.setattr(centre, "CLIPPED_CENTROID_WHEN_SIGMA_PX", math.inf)
-    before, truth = _detect(condition, index)
+    before, truth = _detect(condition, index, two_signals=True)
     monkeypatch.undo()
-    after, _ = _detect(condition, index)
+    after, _ = _detect(condition, index, two_signals=True)
     t = truth[laser]
     assert t is not None
     assert math.dist((before[laser].x, before[laser].y), t) > 1.3

@@ -28,6 +28,7 @@ from sfm_laserscale.detection.centre import centre_chosen
 from sfm_laserscale.detection.explain import explain_missing
 from sfm_laserscale.detection.floor import PLACE, floor_search
 from sfm_laserscale.detection.inputs import check_image, colours_needed, group_rgb
+from sfm_laserscale.detection.joint import NOTHING_BESIDE
 from sfm_laserscale.detection.options import Candidate, DetectionOptions, DetectionResult
 from sfm_laserscale.detection.response import crop_channels
 from sfm_laserscale.memory import trim_heap
@@ -119,7 +120,7 @@ def _drop_alone(rig: Rig, valid: list[Measure], chosen: dict[str, int], unseen: 
     del chosen[name]
     for other in valid:  # cores judged beside it by the joint choice (joint.why_not_rescued)
         for laser, why in other.not_rescued.items():
-            if laser != name and not why.endswith("none was"):
+            if laser != name and why != NOTHING_BESIDE:
                 other.not_rescued[laser] = (f"{why}, and the {name} spot chosen with it was "
                                             "dropped afterwards, alone in its image")
 

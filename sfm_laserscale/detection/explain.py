@@ -34,13 +34,11 @@ def _line(m: Measure, las: Laser, d: float, band: float, options: DetectionOptio
         return f"{where} was taken by {m.laser}"
     beam = float(beam_term(np.array([d]), band)[0])
     score = float(np.prod(list(evidence(m, beam, las.name).values())))
-    if score < options.min_score and las.name in m.not_rescued:
-        return (f"{where} score {score:.2f} < min_score {options.min_score:g}: a clipped core "
-                f"whose colour cannot be read, not taken at the laser's colour: "
-                f"{m.not_rescued[las.name]}")
     if score < options.min_score:
-        return (f"{where} score {score:.2f} < min_score {options.min_score:g}: "
-                f"{why_weak(m, beam, las.name)}")
+        why = (f"a clipped core whose colour cannot be read, not taken at the laser's colour: "
+               f"{m.not_rescued[las.name]}" if las.name in m.not_rescued
+               else why_weak(m, beam, las.name))
+        return f"{where} score {score:.2f} < min_score {options.min_score:g}: {why}"
     return f"{where} score {score:.2f}: {m.reason}"
 
 

@@ -84,6 +84,10 @@ ALL_WHITENED_MIN = 3
 ALL_WHITENED_BEAM = 0.1
 #: … and all within this (natural log) of their median range
 ALL_WHITENED_RANGE_LN = 0.08
+#: why a whitened core was not rescued when no option was taken on its own evidence
+NOTHING_BESIDE = (f"taken only at the range of a spot of another laser, or with "
+                  f"{ALL_WHITENED_MIN - 1} more such cores on their beams' lines at one range; "
+                  "none was")
 #: the joint choice weighs at most this many combinations (more: each laser's weakest
 #: alternatives are dropped first)
 MAX_COMBINATIONS = 20000
@@ -301,9 +305,7 @@ def why_not_rescued(name: str, o: Option, choice: Choice, min_score: float) -> s
     taken, in words."""
     plain = {n: p for n, p in choice.chosen.items() if not p.rescued and n != name}
     if not plain:
-        return (f"taken only at the range of a spot of another laser, or with "
-                f"{ALL_WHITENED_MIN - 1} more such cores on their beams' lines at one range; "
-                "none was")
+        return NOTHING_BESIDE
     if len(plain) == 1 and o.beam_share > RESCUE_BESIDE_ONE_BEAM:
         return (f"{o.beam_share:.2f} band_px from its beam's image beside a single spot "
                 f"(at most {RESCUE_BESIDE_ONE_BEAM:g})")
