@@ -282,15 +282,20 @@ def test_unmeasured_colour_is_neutral_only_for_a_clipped_core() -> None:
     assert not colour_evidence(None, 1, 0.07, clipped=False).measured
 
 
-def test_white_glint_on_the_beam_is_not_a_spot_and_the_reason_names_it() -> None:
-    rng = np.random.default_rng(5)
-    rig = _rig("green")
-    img = _flat(0.004, rng)
+def _white_glint(rig: Rig) -> tuple[np.ndarray, tuple[float, float]]:
+    """A flat scene with a white glint (peak 2.5, σ 2 px) on the beam at 2.5 m, and where."""
+    img = _flat(0.004, np.random.default_rng(5))
     glint = _xy(rig, 2.5)
     yy, xx = np.mgrid[0 : CAMERA.height, 0 : CAMERA.width] + 0.5
     img += (2.5 * np.exp(-0.5 * ((xx - glint[0]) ** 2 + (yy - glint[1]) ** 2) / 2.0**2)
             )[..., None].astype(np.float32)
-    res = detect_spots(to_uint8(img, 2.2), CAMERA, rig)
+    return to_uint8(img, 2.2), glint
+
+
+def test_white_glint_on_the_beam_is_not_a_spot_and_the_reason_names_it() -> None:
+    rig = _rig("green")
+    rgb, glint = _white_glint(rig)
+    res = detect_spots(rgb, CAMERA, rig)
     assert res.spots == ()
     reason = res.missing["L1"]
     assert "colour" in reason and "min_score" in reason
@@ -326,14 +331,8 @@ def test_scene_clutter_is_measured_away_from_the_beam_bands() -> None:
 
 
 def test_overlay_draws_the_near_misses_of_a_laser_without_spot() -> None:
-    rng = np.random.default_rng(5)
     rig = _rig("green")
-    img = _flat(0.004, rng)
-    glint = _xy(rig, 2.5)
-    yy, xx = np.mgrid[0 : CAMERA.height, 0 : CAMERA.width] + 0.5
-    img += (2.5 * np.exp(-0.5 * ((xx - glint[0]) ** 2 + (yy - glint[1]) ** 2) / 2.0**2)
-            )[..., None].astype(np.float32)
-    rgb = to_uint8(img, 2.2)
+    rgb, _ = _white_glint(rig)
     res = detect_spots(rgb, CAMERA, rig)
     misses = near_misses(res)
     assert set(misses) == {"L1"}
