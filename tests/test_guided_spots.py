@@ -104,6 +104,8 @@ def test_a_spot_lost_among_scene_blobs_is_found_where_the_model_puts_it() -> Non
     assert "outside the image" in out.missing["L2"]
     with pytest.raises(Exception, match="radius_px"):
         GuidedOptions(radius_px=0.0)
+    with pytest.raises(Exception, match="maxima_sigmas"):
+        GuidedOptions(maxima_sigmas=0.0)
     assert DetectionOptions().min_snr > 0  # the weak-spot test still applies near a prediction
 
 

@@ -64,6 +64,8 @@ F32 = NDArray[np.float32]
 WHITENED_MAX_COLOUR = 0.5
 #: maxima below the clutter gate measured for the second look, per response
 SECOND_LOOK_MAX = 12
+#: local maxima of a response are listed from this many robust σ of its DoG over the crop
+MAXIMA_SIGMAS = 4.0
 WEAKER_THAN_SCENE = "no stronger than the scene's own blobs"
 #: how the weak-spot test's rejection begins ("weak (SNR 3.0 < 5)")
 WEAK_SNR = "weak (SNR"
@@ -125,26 +127,28 @@ class _Source:
 
 
 def _source(name: str, plane: F32, options: DetectionOptions, scene: NDArray[np.bool_] | None,
-            where: NDArray[np.bool_] | None = None) -> _Source:
+            where: NDArray[np.bool_] | None = None, maxima_sigmas: float = MAXIMA_SIGMAS
+            ) -> _Source:
     dog = blob_response(plane, options.spot_sigmas_px)
-    threshold = max(4.0 * robust_std(dog[::4, ::4]), 4.0 / 255.0)
+    threshold = max(maxima_sigmas * robust_std(dog[::4, ::4]), 4.0 / 255.0)
     return _Source(name, plane, dog, threshold, clutter_level(dog, where=scene), where)
 
 
 def _sources(channels: Channels, planes: Planes, options: DetectionOptions,
-             region: SearchRegion) -> list[_Source]:
+             region: SearchRegion, maxima_sigmas: float) -> list[_Source]:
     """The colour response, and the brightness response: in every band for a laser whose light
     is mostly luma (green: in green water its colour response is weak, its brightness is not),
     else where the laser channel clips."""
     scene = scene_mask(region)
-    out = [_source("colour", planes.resp, options, scene)]
+    out = [_source("colour", planes.resp, options, scene, None, maxima_sigmas)]
     if luma_dominant(planes.laser_rgb):
-        out.append(_source("bright", brightness(channels), options, scene, None))
+        out.append(_source("bright", brightness(channels), options, scene, None, maxima_sigmas))
         return out
     clipped = planes.clipped_laser if region.near is None else planes.clipped_laser & region.near
     if clipped.any():
         near_clip = cv2.dilate(clipped.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-        out.append(_source("bright", brightness(channels), options, scene, near_clip))
+        out.append(_source("bright", brightness(channels), options, scene, near_clip,
+                           maxima_sigmas))
     return out
 
 
@@ -265,15 +269,16 @@ def _refined(planes: Planes, m: Measure, options: DetectionOptions,
 
 def candidates_for_colour(
     channels: Channels, color: str, options: DetectionOptions, region: SearchRegion,
-    laser_rgb: tuple[float, float, float],
+    laser_rgb: tuple[float, float, float], maxima_sigmas: float = MAXIMA_SIGMAS,
 ) -> list[Measure]:
     """Local maxima of one colour's responses, measured and refined (image COLMAP px).
 
     ``laser_rgb``: the expected colour of this channel's lasers (the refinement separates
-    their light from the scene's texture with it).
+    their light from the scene's texture with it). ``maxima_sigmas``: a maximum is listed
+    from this many robust σ of its response's DoG over the crop (and 4/255).
     """
     planes = make_planes(channels, color, options, region.max_radius, laser_rgb)
-    sources = _sources(channels, planes, options, region)
+    sources = _sources(channels, planes, options, region, maxima_sigmas)
     bright_plane = sources[-1].plane if sources[-1].name == "bright" else None
     out: list[Measure] = []
     for src in sources:

@@ -11,11 +11,12 @@ where the spot is certain to be if the laser lit the floor.
 
 :func:`detect_near` measures the local maxima of the laser's responses in a small window with
 the detector's own code (shape, sub-pixel centre, σ, colour), with no clutter gate and no
-clutter term, and takes the best candidate within ``radius_px`` of the prediction whose
-evidence (contrast × roundness × colour) reaches ``min_score``. Colour counts at least
-``colour_floor`` (0.5: a green spot in green water adds light of the scene's own colour); a
-clipped core whose colour reads whitened (:mod:`.joint`) takes colour term 1 there, as it does
-at the other spots' range.
+clutter term, listing them from ``maxima_sigmas`` robust σ of the window's DoG (the window's
+spread is its scene's, not noise: a lamp's hot spot, clutter), and takes the best candidate
+within ``radius_px`` of the prediction whose evidence (contrast × roundness × colour)
+reaches ``min_score``. Colour counts at least ``colour_floor`` (0.5: a green spot in green
+water adds light of the scene's own colour); a clipped core whose colour reads whitened
+(:mod:`.joint`) takes colour term 1 there, as it does at the other spots' range.
 Every hard test of the detector still applies (too large, not compact, SNR below ``min_snr``,
 refinement failed). Given the radius of the image's other spots (the floor search), a maximum
 that fails the shape tests against the far background is measured against its own
@@ -53,16 +54,23 @@ class GuidedOptions:
     - ``colour_floor``: the colour term never counts below this: a green spot in green water
       adds light of the scene's own colour (colour term ~0.05 on the spot itself), and near its
       predicted point its position is the stronger evidence (docs/DETECTION.md).
+    - ``maxima_sigmas``: local maxima are listed from this many robust σ of their response's
+      DoG over the search's crop (the detector lists its bands' from 4). The crop's spread
+      is its scene's (a lamp's hot spot, clutter), not noise; near the point the weak-spot
+      test decides (docs/DETECTION.md, the twenty-sixth round).
     """
 
     radius_px: float = 3.0
     min_score: float = 0.25
     min_snr: float | None = None
     colour_floor: float = 0.5
+    maxima_sigmas: float = 2.0
 
     def __post_init__(self) -> None:
         if not self.radius_px > 0:
             raise InputError(f"guided radius_px must be positive, got {self.radius_px}")
+        if not self.maxima_sigmas > 0:
+            raise InputError(f"guided maxima_sigmas must be positive, got {self.maxima_sigmas}")
         for name in ("min_score", "colour_floor"):
             if not 0 <= getattr(self, name) <= 1:
                 raise InputError(f"guided {name} must be in [0, 1], got {getattr(self, name)}")
@@ -154,7 +162,8 @@ def search_near(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, laser: s
     channels = crop_channels(image_rgb, region.roi, options.input_gamma)
     colours = list(CHANNELS) if las.color == "any" else [las.color]
     measures = [m for c in colours
-                for m in candidates_for_colour(channels, c, ungated, region, group_rgb(rig, c))]
+                for m in candidates_for_colour(channels, c, ungated, region, group_rgb(rig, c),
+                                               guided.maxima_sigmas)]
     best, why = _best(measures, xy, guided, place)
     if best is None:
         return None, 0.0, why
