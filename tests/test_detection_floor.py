@@ -23,9 +23,10 @@ from sfm_laserscale.detection.floor import (
 )
 from sfm_laserscale.detection.guided import GuidedOptions, search_near
 from sfm_laserscale.errors import InputError
+from sfm_laserscale.model import Camera
 from sfm_laserscale.rig import Rig, rig_from_dict
 from sfm_laserscale.synthetic.spots import paint_spot, to_uint8
-from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
+from sfm_laserscale.synthetic.underwater import CONDITIONS, Frame, render_frame
 from tests.test_detection_second_look import CAMERA, WATER
 
 RANGES = (0.5, 10.0)
@@ -159,16 +160,24 @@ def test_the_floor_is_searched_again_with_the_spots_the_second_look_took() -> No
     assert {s.laser for s in off.spots} == {"L1", "L2"} and PLACE not in off.missing["L4"]
 
 
-def _searched_with_the_other_spots_radius(seed: int, condition: str, index: int, name: str,
-                                          failed: str) -> tuple[DetectionResult, Measure, float]:
-    """A physical frame's ``name`` spot: found by ``detect_spots`` within 1.5 px; searched near
-    its truth without the other spots' radius, the maximum there fails with ``failed``; with
-    it, the candidate taken (returned with its evidence and that radius)."""
+def _physical(seed: int, condition: str, index: int, name: str
+              ) -> tuple[Frame, Camera, Rig, tuple[float, float]]:
+    """A 1920 × 1080 frame of the physical benchmark (as its ``seed``), its camera and rig, and
+    laser ``name``'s true spot (COLMAP px)."""
     ci = list(CONDITIONS).index(condition)
     frame = render_frame(condition, 1920, 1080, np.random.default_rng([seed, ci, 0, index]))
     camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
     truth = frame.truth[name]
     assert truth is not None
+    return frame, camera, rig, truth
+
+
+def _searched_with_the_other_spots_radius(seed: int, condition: str, index: int, name: str,
+                                          failed: str) -> tuple[DetectionResult, Measure, float]:
+    """A physical frame's ``name`` spot: found by ``detect_spots`` within 1.5 px; searched near
+    its truth without the other spots' radius, the maximum there fails with ``failed``; with
+    it, the candidate taken (returned with its evidence and that radius)."""
+    frame, camera, rig, truth = _physical(seed, condition, index, name)
     res = detect_spots(frame.image_rgb, camera, rig)
     got = {s.laser: s for s in res.spots}
     assert name in got, res.missing.get(name)
@@ -220,11 +229,7 @@ def test_a_weak_spot_near_the_floors_point_is_taken_on_its_evidence(
     """Physical frames: near where the floor through the other spots puts it, the maximum at the
     spot fails the weak-spot test (SNR < 5), and the spot was missed. Searched again there with
     SNR 2.5 allowed, its evidence (laser-coloured, round) reaches ``min_score``: it is taken."""
-    ci = list(CONDITIONS).index(condition)
-    frame = render_frame(condition, 1920, 1080, np.random.default_rng([seed, ci, 0, index]))
-    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
-    truth = frame.truth[name]
-    assert truth is not None
+    frame, camera, rig, truth = _physical(seed, condition, index, name)
     before = detect_spots(frame.image_rgb, camera, rig, DetectionOptions(floor_weak_min_snr=None))
     assert name not in {s.laser for s in before.spots}
     assert PLACE in before.missing[name]
@@ -270,11 +275,7 @@ def test_near_the_floors_point_maxima_are_listed_from_the_crops_texture_not_its_
     so 4 robust σ of its DoG list no maximum of the spot's light that passes; from 2 σ (the
     search's default) the spot's maximum is listed and, with the weak-spot test's SNR, taken.
     Both spots were missed before."""
-    ci = list(CONDITIONS).index(condition)
-    frame = render_frame(condition, 1920, 1080, np.random.default_rng([0, ci, 0, index]))
-    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
-    truth = frame.truth[name]
-    assert truth is not None
+    frame, camera, rig, truth = _physical(0, condition, index, name)
     weak = GuidedOptions(radius_px=default_floor_radius_px(camera.width, camera.height),
                          min_snr=DetectionOptions().floor_weak_min_snr)
     four = search_near(frame.image_rgb, camera, rig, name, truth, DetectionOptions(),

@@ -127,8 +127,7 @@ class _Source:
 
 
 def _source(name: str, plane: F32, options: DetectionOptions, scene: NDArray[np.bool_] | None,
-            where: NDArray[np.bool_] | None = None, maxima_sigmas: float = MAXIMA_SIGMAS
-            ) -> _Source:
+            where: NDArray[np.bool_] | None, maxima_sigmas: float) -> _Source:
     dog = blob_response(plane, options.spot_sigmas_px)
     threshold = max(maxima_sigmas * robust_std(dog[::4, ::4]), 4.0 / 255.0)
     return _Source(name, plane, dog, threshold, clutter_level(dog, where=scene), where)
