@@ -14,6 +14,7 @@ from sfm_laserscale.detection import DetectionOptions, beam_polyline_px, detect_
 from sfm_laserscale.detection.beams import beam_samples, range_along_beam, scene_mask
 from sfm_laserscale.detection.joint import (
     DEPTH,
+    PAIRS_TRIED,
     RESCUE_BESIDE_ONE_BEAM,
     Option,
     all_whitened_value,
@@ -21,6 +22,7 @@ from sfm_laserscale.detection.joint import (
     combination_value,
     depth_term,
     range_term,
+    whitened_pairs,
     why_not_rescued,
 )
 from sfm_laserscale.detection.score import UNMEASURED_UNCLIPPED, AddedLight, colour_evidence
@@ -239,6 +241,29 @@ def test_whitened_cores_alone_are_taken_only_on_their_beams_at_one_range() -> No
     assert valued is not None and valued[0] == pytest.approx(1.8)
     combo["D"] = replace(combo["D"], rescue=0.2)  # worth less than min_score
     assert all_whitened_value(combo, 0.25) is None
+
+
+def test_two_whitened_cores_on_their_beams_at_one_range_are_a_floor_to_search() -> None:
+    """A pair of whitened cores is not taken by the joint choice (two agree by chance in
+    laser-free frames), but one on its beam's line at the other's range is a floor to search:
+    the pairs passing the all-whitened tests but for their number, best first."""
+    def core(i: int, range_m: float, share: float, rescue: float = 0.6) -> Option:
+        return Option(i, 0.05, range_m, rescue=rescue, beam_share=share)
+
+    options = {"A": [core(0, 2.50, 0.07)], "B": [core(1, 2.55, 0.01, 0.45)],
+               "C": [core(2, 2.50, 0.3)],  # across its band: a glint
+               "D": [core(3, 3.00, 0.02), core(4, 2.52, 0.05, 0.2)]}  # another range; weak
+    pairs = whitened_pairs(options, 0.25)
+    assert [sorted(p.chosen) for p in pairs] == [["A", "B"]]
+    assert all(o.rescued for o in pairs[0].chosen.values())
+    assert pairs[0].floor_m == pytest.approx(2.525)
+    # best total first; one candidate is never both lasers' core
+    options["D"] = [core(3, 2.49, 0.02, 0.9), core(0, 2.50, 0.07)]
+    pairs = whitened_pairs(options, 0.25)
+    assert [{n: o.index for n, o in p.chosen.items()} for p in pairs] == [
+        {"A": 0, "D": 3}, {"B": 1, "D": 3}, {"A": 0, "B": 1}, {"B": 1, "D": 0}]
+    many = {f"L{i}": [core(i, 2.5, 0.0)] for i in range(8)}  # 28 pairs
+    assert len(whitened_pairs(many, 0.25)) == PAIRS_TRIED
 
 
 def test_many_lasers_keep_the_joint_choice_within_its_budget() -> None:

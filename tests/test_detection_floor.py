@@ -12,6 +12,7 @@ import pytest
 
 from sfm_laserscale.commands.detect import parse_camera
 from sfm_laserscale.detection import DetectionOptions, DetectionResult, detect_spots
+from sfm_laserscale.detection.assign import RESCUED_PAIR
 from sfm_laserscale.detection.beams import search_region
 from sfm_laserscale.detection.candidates import Measure
 from sfm_laserscale.detection.floor import (
@@ -289,3 +290,28 @@ def test_near_the_floors_point_maxima_are_listed_from_the_crops_texture_not_its_
     assert name in got, res.missing.get(name)
     assert math.dist((got[name].x, got[name].y), truth) < 1.0
     assert PLACE in next(c.reason for c in res.candidates if c.laser == name)
+
+
+def test_two_whitened_cores_are_taken_where_the_floor_through_them_holds_the_other_spots(
+        ) -> None:
+    """Seed 1's `green_all` 5: every spot is a whitened clipped core, and only two lie within
+    0.1 band_px of their beams' lines (the third 0.16), too few to be taken alone. The floor
+    through the two puts the other two spots where the floor search finds them: all four are
+    found (all four were missed before). Seed 0's `green_all` 9 has such a pair too, but the
+    floor through it holds one other spot at most: nothing is taken, and its cores' reasons
+    say what the floor held."""
+    frame, camera, rig, _ = _physical(1, "green_all", 5, "L1")
+    res = detect_spots(frame.image_rgb, camera, rig)
+    assert len(res.spots) == 4
+    for spot in res.spots:
+        truth = frame.truth[spot.laser]
+        assert truth is not None and math.dist((spot.x, spot.y), truth) < 1.0
+    reasons = sorted(c.reason for c in res.candidates if c.laser)
+    assert reasons.count(f"assigned to L1: {RESCUED_PAIR}") + reasons.count(
+        f"assigned to L3: {RESCUED_PAIR}") == 2
+    assert sum(PLACE in r for r in reasons) == 2
+    frame, camera, rig, _ = _physical(0, "green_all", 9, "L1")
+    res = detect_spots(frame.image_rgb, camera, rig)
+    assert res.spots == ()
+    for name in ("L1", "L4"):
+        assert "at one range, the floor through the two holds" in res.missing[name]

@@ -32,6 +32,7 @@ from sfm_laserscale.detection.joint import (
     depth_term,
     laser_options,
     range_term,
+    whitened_pairs,
     why_not_rescued,
 )
 from sfm_laserscale.detection.options import DetectionOptions
@@ -190,11 +191,42 @@ def _mark_choice(opts: dict[str, list[Option]], choice: Choice, valid: list[Meas
             m.depth[name] = choice.depth[name] if mine else depth_term(o, others)
 
 
+#: the reasons of whitened cores taken at the other lasers' range, alone on their beams' lines
+#: at one range, and as a pair whose floor holds the other lasers' spots (:mod:`.joint`)
+RESCUED_BESIDE = ("a clipped core whose colour cannot be read, at the range of the other "
+                  "lasers' spots")
+RESCUED_ALONE = ("a clipped core whose colour cannot be read, one of {n} such cores on their "
+                 "beams' lines at one range")
+RESCUED_PAIR = ("a clipped core whose colour cannot be read, one of 2 such cores on their beams' "
+                "lines at one range, where the floor through them holds the other lasers' spots")
+
+
+def take_choice(rig: Rig, region: SearchRegion, valid: list[Measure], dist: F64,
+                choice: Choice, rescued_why: str) -> dict[str, int]:
+    """In place (``valid``): the choice's candidates assigned to their lasers, with their
+    evidence (a rescued core's colour term CLIPPED_COLOUR, ``rescued_why`` in its reason).
+    Returns laser -> index into ``valid``."""
+    chosen: dict[str, int] = {}
+    for name, o in choice.chosen.items():
+        li = rig.names.index(name)
+        m = valid[o.index]
+        beam = float(beam_term(dist[li, o.index : o.index + 1], region.band_px)[0])
+        m.evidence = evidence(m, beam, name)
+        m.laser, m.reason = name, f"assigned to {name}"
+        if o.rescued:
+            m.evidence["colour"] = CLIPPED_COLOUR
+            m.reason += f": {rescued_why}"
+        m.score = float(np.prod(list(m.evidence.values())))
+        chosen[name] = o.index
+    return chosen
+
+
 def assign_calibrated(
     rig: Rig, region: SearchRegion, valid: list[Measure], options: DetectionOptions
-) -> tuple[dict[str, int], dict[str, str], F64]:
+) -> tuple[dict[str, int], dict[str, str], F64, list[Choice]]:
     """Laser name -> index into ``valid`` (chosen jointly, :mod:`.joint`); missing reasons;
-    distances."""
+    distances; the pairs of whitened cores a floor search may take when nothing was chosen
+    (:func:`.joint.whitened_pairs`)."""
     scores, dist, missing = _laser_scores(rig, region, valid, options)
     opts = {las.name: laser_options(las.name, scores[i], region,
                                     valid, _farther(valid, las.name), MAX_OPTIONS)
@@ -203,21 +235,9 @@ def assign_calibrated(
     _mark_choice(opts, choice, valid)
     picked = choice.chosen
     whitened_only = all(o.rescued for o in picked.values())
-    chosen: dict[str, int] = {}
-    for name, o in picked.items():
-        li = rig.names.index(name)
-        m = valid[o.index]
-        beam = float(beam_term(dist[li, o.index : o.index + 1], region.band_px)[0])
-        m.evidence = evidence(m, beam, name)
-        m.laser, m.reason = name, f"assigned to {name}"
-        if o.rescued:
-            m.evidence["colour"] = CLIPPED_COLOUR
-            m.reason += (f": a clipped core whose colour cannot be read, one of {len(picked)} "
-                         "such cores on their beams' lines at one range" if whitened_only else
-                         ": a clipped core whose colour cannot be read, at the range of the "
-                         "other lasers' spots")
-        m.score = float(np.prod(list(m.evidence.values())))
-        chosen[name] = o.index
+    chosen = take_choice(rig, region, valid, dist, choice,
+                         RESCUED_ALONE.format(n=len(picked)) if whitened_only
+                         else RESCUED_BESIDE)
     for name, ranked in opts.items():
         for o in ranked:
             m = valid[o.index]
@@ -225,7 +245,7 @@ def assign_calibrated(
                 m.not_rescued[name] = why_not_rescued(name, o, choice, options.min_score)
             if m.laser is None and not m.reason and _score(m, 1.0, name) < options.min_score:
                 m.reason = f"score below min_score for {name}"
-    return chosen, missing, dist
+    return chosen, missing, dist, whitened_pairs(opts, options.min_score)
 
 
 def second_look(rig: Rig, region: SearchRegion, measures: list[Measure], valid: list[Measure],

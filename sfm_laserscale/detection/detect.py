@@ -4,8 +4,9 @@
 responses (:mod:`.response`), candidates measured, refined and scored (:mod:`.candidates`,
 :mod:`.shape`, :mod:`.refine`, :mod:`.score`), the assignment to lasers (:mod:`.assign`), the
 search where the plane through the spots found meets a missing laser's beam (:mod:`.floor`),
-a lone spot's stricter test (:func:`_drop_alone`), the chosen spots' centres from both of a
-green laser's signals (:mod:`.centre`) and the reasons for lasers without a spot
+a lone spot's stricter test (:func:`_drop_alone`), in an image where nothing was chosen the
+floor through two whitened cores (:func:`_pair_on_floor`), the chosen spots' centres from both
+of a green laser's signals (:mod:`.centre`) and the reasons for lasers without a spot
 (:mod:`.explain`). Every candidate is returned with what became of it.
 """
 
@@ -17,10 +18,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sfm_laserscale.detection.assign import (
+    RESCUED_PAIR,
     assign_calibrated,
     assign_uncalibrated,
     explain_unused,
     second_look,
+    take_choice,
 )
 from sfm_laserscale.detection.beams import SearchRegion, search_region
 from sfm_laserscale.detection.candidates import Measure, candidates_for_colour
@@ -28,7 +31,7 @@ from sfm_laserscale.detection.centre import centre_chosen
 from sfm_laserscale.detection.explain import explain_missing
 from sfm_laserscale.detection.floor import PLACE, floor_search
 from sfm_laserscale.detection.inputs import check_image, colours_needed, group_rgb
-from sfm_laserscale.detection.joint import NOTHING_BESIDE
+from sfm_laserscale.detection.joint import NOTHING_BESIDE, PAIR_FLOOR_SPOTS, Choice
 from sfm_laserscale.detection.options import Candidate, DetectionOptions, DetectionResult
 from sfm_laserscale.detection.response import crop_channels
 from sfm_laserscale.memory import trim_heap
@@ -100,6 +103,41 @@ def _floor_then_second_look(image_rgb: NDArray[np.uint8], camera: Camera, rig: R
     return on_floor, why
 
 
+def _pair_tried(valid: list[Measure], pair: Choice, found: int) -> None:
+    """In place: the reasons of a pair of whitened cores whose floor held too few spots."""
+    for name, o in pair.chosen.items():
+        other = next(n for n in pair.chosen if n != name)
+        m = valid[o.index]
+        if name in m.not_rescued and "; with " not in m.not_rescued[name]:
+            m.not_rescued[name] += (f"; with {other}'s such core at one range, the floor through "
+                                    f"the two holds {found} other lasers' spots (at least "
+                                    f"{PAIR_FLOOR_SPOTS})")
+
+
+def _pair_on_floor(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
+                   region: SearchRegion, measures: list[Measure], valid: list[Measure],
+                   chosen: dict[str, int], dist: NDArray[np.float64], pairs: list[Choice],
+                   options: DetectionOptions) -> dict[str, Measure]:
+    """In place (``chosen``, ``valid``): where nothing was chosen, the first pair of whitened
+    cores (:func:`.joint.whitened_pairs`, best first) through which the floor search finds
+    PAIR_FLOOR_SPOTS other lasers' spots is taken with those spots; the lasers still without
+    one are then searched as after the joint choice. Returns the floor's spots."""
+    if chosen:
+        return {}
+    for pair in pairs:
+        trial_valid, trial = list(valid), {n: o.index for n, o in pair.chosen.items()}
+        found, _ = _floor_round(image_rgb, camera, rig, region, trial_valid, trial, options)
+        if len(found) < PAIR_FLOOR_SPOTS:
+            _pair_tried(valid, pair, len(found))
+            continue
+        valid[:] = trial_valid
+        chosen.update(take_choice(rig, region, valid, dist, pair, RESCUED_PAIR) | trial)
+        more, _ = _floor_then_second_look(image_rgb, camera, rig, region, measures, valid,
+                                          chosen, options)
+        return found | more
+    return {}
+
+
 def _drop_alone(rig: Rig, valid: list[Measure], chosen: dict[str, int], unseen: dict[str, str],
                 options: DetectionOptions) -> None:
     """In place (``chosen``): a spot alone in its image (the only laser's spot, with two or more
@@ -135,10 +173,12 @@ def detect_spots(
     measures = _measure_candidates(image_rgb, rig, region, options)
     trim_heap()  # the detection planes (~16 bytes per pixel) go back to the OS
     valid = [m for m in measures if m.rejected is None]
-    chosen, missing, dist = assign_calibrated(rig, region, valid, options)
+    chosen, missing, dist, pairs = assign_calibrated(rig, region, valid, options)
     on_floor, floor_why = _floor_then_second_look(image_rgb, camera, rig, region, measures,
                                                   valid, chosen, options)
     _drop_alone(rig, valid, chosen, missing, options)
+    on_floor |= _pair_on_floor(image_rgb, camera, rig, region, measures, valid, chosen, dist,
+                               pairs, options)
     for name in chosen:
         missing.pop(name, None)
     chosen_u, missing_u = assign_uncalibrated(rig, valid, set(chosen.values()), options)

@@ -39,7 +39,9 @@ each candidate to one laser (:func:`combination_value`):
   image and all within ALL_WHITENED_RANGE_LN of their median range (:func:`all_whitened_value`):
   at 4000 × 3000 the bands hold enough glints that three or four of them agree within 15 % in
   most laser-free frames, but not on their beams' lines as well (a laser's spot lies on its
-  beam within the rig's calibration error, a glint anywhere across the band).
+  beam within the rig's calibration error, a glint anywhere across the band). Two such cores
+  alone (:func:`whitened_pairs`) are a floor to search the other beams on: they are taken
+  where the search finds PAIR_FLOOR_SPOTS other lasers' spots on it (:mod:`.detect`).
 
 The combination of the highest total wins (ties: more spots). Particles lit by the beams are
 laser-coloured and strong, but their ranges agree neither with each other nor with the floor;
@@ -84,10 +86,16 @@ ALL_WHITENED_MIN = 3
 ALL_WHITENED_BEAM = 0.1
 #: … and all within this (natural log) of their median range
 ALL_WHITENED_RANGE_LN = 0.08
+#: two such cores alone are taken when the floor through them holds this many other lasers'
+#: spots (:func:`whitened_pairs`; the floor search, :mod:`.detect`)
+PAIR_FLOOR_SPOTS = 2
+#: at most this many pairs of whitened cores are searched for that, best first
+PAIRS_TRIED = 10
 #: why a whitened core was not rescued when no option was taken on its own evidence
-NOTHING_BESIDE = (f"taken only at the range of a spot of another laser, or with "
-                  f"{ALL_WHITENED_MIN - 1} more such cores on their beams' lines at one range; "
-                  "none was")
+NOTHING_BESIDE = (f"taken only at the range of a spot of another laser, with "
+                  f"{ALL_WHITENED_MIN - 1} more such cores on their beams' lines at one range, "
+                  f"or with one more where the floor through the two holds {PAIR_FLOOR_SPOTS} "
+                  "other lasers' spots; none was")
 #: the joint choice weighs at most this many combinations (more: each laser's weakest
 #: alternatives are dropped first)
 MAX_COMBINATIONS = 20000
@@ -240,14 +248,14 @@ def combination_value(combo: dict[str, Option], min_score: float,
     return best
 
 
-def all_whitened_value(combo: dict[str, Option], min_score: float
-                       ) -> tuple[float, Choice] | None:
+def all_whitened_value(combo: dict[str, Option], min_score: float,
+                       min_count: int = ALL_WHITENED_MIN) -> tuple[float, Choice] | None:
     """(total value, choice) of a combination of whitened cores alone (every option
-    ``rescued``), or None: it needs ALL_WHITENED_MIN options or more, each within
+    ``rescued``), or None: it needs ``min_count`` options or more, each within
     ALL_WHITENED_BEAM × ``band_px`` of its beam's image, all within ALL_WHITENED_RANGE_LN of
     their median range (its floor range), and each worth ``min_score`` with its depth term."""
     opts = list(combo.values())
-    if len(opts) < ALL_WHITENED_MIN or any(
+    if len(opts) < min_count or any(
             o.beam_share > ALL_WHITENED_BEAM or not math.isfinite(o.range_m) for o in opts):
         return None
     ref = float(np.median([o.range_m for o in opts]))
@@ -258,6 +266,21 @@ def all_whitened_value(combo: dict[str, Option], min_score: float
     if min(values) < min_score:
         return None
     return sum(values), Choice(combo, ref, depth, dict.fromkeys(combo, ref))
+
+
+def whitened_pairs(options: dict[str, list[Option]], min_score: float) -> list[Choice]:
+    """Pairs of whitened cores of two lasers that pass :func:`all_whitened_value`'s tests but
+    for their number (on their beams' lines, at one range, each worth ``min_score``), best
+    total first, at most PAIRS_TRIED: each is a floor to search the other beams on. Two cores
+    agree by chance in some laser-free frames; all the other spots where their floor puts them
+    do not (:mod:`.detect`)."""
+    cores = [(n, replace(o, rescued=True)) for n, opts in options.items() for o in opts
+             if o.rescue >= min_score]
+    valued = [v for i, (na, a) in enumerate(cores) for nb, b in cores[i + 1:]
+              if na != nb and a.index != b.index
+              and (v := all_whitened_value({na: a, nb: b}, min_score, 2)) is not None]
+    valued.sort(key=lambda v: -v[0])
+    return [choice for _, choice in valued[:PAIRS_TRIED]]
 
 
 def _alternatives(opts: list[Option], min_score: float) -> list[Option | None]:
