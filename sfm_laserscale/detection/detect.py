@@ -103,15 +103,19 @@ def _floor_then_second_look(image_rgb: NDArray[np.uint8], camera: Camera, rig: R
     return on_floor, why
 
 
+#: what a whitened core's reason adds when the floor through it and another held too few spots
+PAIR_HELD = ("; with {other}'s such core at one range, the floor through the two holds {found} "
+             f"of the {PAIR_FLOOR_SPOTS} other lasers' spots it needs")
+
+
 def _pair_tried(valid: list[Measure], pair: Choice, found: int) -> None:
-    """In place: the reasons of a pair of whitened cores whose floor held too few spots."""
+    """In place: the reasons of a pair of whitened cores whose floor held too few spots (a
+    core's first such pair only)."""
     for name, o in pair.chosen.items():
         other = next(n for n in pair.chosen if n != name)
-        m = valid[o.index]
-        if name in m.not_rescued and "; with " not in m.not_rescued[name]:
-            m.not_rescued[name] += (f"; with {other}'s such core at one range, the floor through "
-                                    f"the two holds {found} other lasers' spots (at least "
-                                    f"{PAIR_FLOOR_SPOTS})")
+        why = valid[o.index].not_rescued
+        if name in why and "such core at one range" not in why[name]:
+            why[name] += PAIR_HELD.format(other=other, found=found)
 
 
 def _pair_on_floor(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
