@@ -108,14 +108,16 @@ PAIR_HELD = ("; with {other}'s such core at one range, the floor through the two
              f"of the {PAIR_FLOOR_SPOTS} other lasers' spots it needs")
 
 
-def _pair_tried(valid: list[Measure], pair: Choice, found: int) -> None:
-    """In place: the reasons of a pair of whitened cores whose floor held too few spots (a
-    core's first such pair only)."""
+def _pair_tried(valid: list[Measure], pair: Choice, found: int,
+                noted: set[tuple[int, str]]) -> None:
+    """In place: the reasons of a pair of whitened cores whose floor held too few spots, for
+    each core (index into ``valid``, laser) not yet in ``noted`` (its first such pair only)."""
     for name, o in pair.chosen.items():
         other = next(n for n in pair.chosen if n != name)
         why = valid[o.index].not_rescued
-        if name in why and "such core at one range" not in why[name]:
+        if name in why and (o.index, name) not in noted:
             why[name] += PAIR_HELD.format(other=other, found=found)
+            noted.add((o.index, name))
 
 
 def _pair_on_floor(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
@@ -128,11 +130,12 @@ def _pair_on_floor(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
     one are then searched as after the joint choice. Returns the floor's spots."""
     if chosen:
         return {}
+    noted: set[tuple[int, str]] = set()
     for pair in pairs:
         trial_valid, trial = list(valid), {n: o.index for n, o in pair.chosen.items()}
         found, _ = _floor_round(image_rgb, camera, rig, region, trial_valid, trial, options)
         if len(found) < PAIR_FLOOR_SPOTS:
-            _pair_tried(valid, pair, len(found))
+            _pair_tried(valid, pair, len(found), noted)
             continue
         valid[:] = trial_valid
         chosen.update(take_choice(rig, region, valid, dist, pair, RESCUED_PAIR) | trial)
