@@ -1,5 +1,6 @@
 """The second look: a laser left without a spot takes a maximum held back by the clutter gate
-where its light has the laser's colour and its range agrees with the other lasers' spots."""
+where its light has the laser's colour and its range agrees with the other lasers' spots, or
+where it is a whitened clipped core on its beam's line at their range."""
 
 from __future__ import annotations
 
@@ -10,7 +11,9 @@ import numpy as np
 import pytest
 
 from sfm_laserscale.commands.detect import parse_camera
-from sfm_laserscale.detection import DetectionOptions, detect_spots
+from sfm_laserscale.detection import DetectionOptions, assign, detect_spots
+from sfm_laserscale.detection.assign import WHITENED_AT_RANGE
+from sfm_laserscale.detection.joint import ALL_WHITENED_BEAM, CLIPPED_COLOUR, RESCUE_RANGE_LN
 from sfm_laserscale.model import Camera
 from sfm_laserscale.rig import Rig, rig_from_dict
 from sfm_laserscale.synthetic.spots import paint_spot, to_uint8
@@ -127,3 +130,41 @@ def test_a_spot_below_one_clutter_level_is_taken_on_a_second_look() -> None:
     before = detect_spots(frame.image_rgb, camera, rig,
                           DetectionOptions(second_look_clutter_ratio=1.0))
     assert "L1" not in {s.laser for s in before.spots}
+
+
+def test_a_whitened_core_must_lie_on_its_beams_line_at_the_chosen_spots_range() -> None:
+    band = 20.0
+    on_line = ALL_WHITENED_BEAM * band
+    edge = math.exp(RESCUE_RANGE_LN)
+    assert assign._whitened_at_range(on_line, 3.0, 3.0, band)
+    assert assign._whitened_at_range(0.0, 3.0 * edge * 0.999, 3.0, band)
+    assert assign._whitened_at_range(0.0, 3.0 / edge * 1.001, 3.0, band)
+    assert not assign._whitened_at_range(on_line * 1.01, 3.0, 3.0, band)
+    assert not assign._whitened_at_range(0.0, 3.0 * edge * 1.01, 3.0, band)
+    assert not assign._whitened_at_range(0.0, 3.0 / edge / 1.01, 3.0, band)
+    assert not assign._whitened_at_range(0.0, math.nan, 3.0, band)
+
+
+@pytest.mark.parametrize(("condition", "index", "name"),
+                         [("strobe_hotspots", 17, "L4"), ("pale_clutter", 10, "L2")])
+def test_a_whitened_core_at_the_other_spots_range_is_taken_on_a_second_look(
+        condition: str, index: int, name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Physical frames (seed 0): the spot is a clipped core whose rim reads white (demosaicing,
+    4:2:0 chroma, crosstalk), so its colour term says scene, and it is not taken by the joint
+    choice. The other three spots are found; on its beam's line at their range the second look
+    takes it (both were missed before). Beside fewer chosen spots than
+    ``WHITENED_LOOK_SPOTS`` it is not taken."""
+    ci = list(CONDITIONS).index(condition)
+    frame = render_frame(condition, 1920, 1080, np.random.default_rng([0, ci, 0, index]))
+    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
+    truth = frame.truth[name]
+    assert truth is not None
+    res = detect_spots(frame.image_rgb, camera, rig)
+    got = {s.laser: s for s in res.spots}
+    assert len(got) == 4 and math.dist((got[name].x, got[name].y), truth) < 1.0
+    taken = next(c for c in res.candidates if c.laser == name)
+    assert WHITENED_AT_RANGE in taken.reason, taken.reason
+    assert dict(taken.evidence)["colour"] == CLIPPED_COLOUR
+    monkeypatch.setattr(assign, "WHITENED_LOOK_SPOTS", 4)
+    before = detect_spots(frame.image_rgb, camera, rig)
+    assert name not in {s.laser for s in before.spots} and name in before.missing

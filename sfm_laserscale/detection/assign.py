@@ -5,11 +5,11 @@ then compares with each candidate's channel) within ``band_px`` of its beam segm
 is the candidate's evidence (:mod:`.score`), ``depth`` (below) and the agreement of its range
 with the other lasers' spots; the spots are chosen jointly (:mod:`.joint`) and a laser whose
 best candidate scores below ``min_score`` gets none; a laser still without a spot then takes a
-laser-coloured maximum held back by the clutter gate at the range of the other spots
-(:func:`second_look`). An uncalibrated laser takes the best free
-candidate of its colour when no other laser shares that colour. A laser without a spot is
-explained by the best candidates in its band, each with its score and the test it failed or its
-weakest evidence.
+laser-coloured maximum held back by the clutter gate at the range of the other spots, or a
+whitened clipped core on its beam's line there (:func:`second_look`). An uncalibrated laser
+takes the best free candidate of its colour when no other laser shares that colour. A laser
+without a spot is explained by the best candidates in its band, each with its score and the
+test it failed or its weakest evidence.
 """
 
 from __future__ import annotations
@@ -22,9 +22,11 @@ from numpy.typing import NDArray
 from sfm_laserscale.detection.beams import SearchRegion, distance_to_polyline, range_along_beam
 from sfm_laserscale.detection.candidates import Measure
 from sfm_laserscale.detection.joint import (
+    ALL_WHITENED_BEAM,
     CLIPPED_COLOUR,
     DEPTH,
     MAX_OPTIONS,
+    RESCUE_RANGE_LN,
     Choice,
     Option,
     agrees,
@@ -47,6 +49,11 @@ LIT_COLOUR = 0.7
 DEPTH_MARGIN = 0.05
 #: clutter term of a maximum below the clutter gate taken at the other spots' range
 CLUTTER_AT_RANGE = 1.0
+#: chosen spots needed before the second look takes a whitened clipped core: one spot's range
+#: is weak backing (a glint on a band's line agrees with a lone false spot in laser-free frames)
+WHITENED_LOOK_SPOTS = 2
+#: how a second-look reason names a whitened clipped core
+WHITENED_AT_RANGE = "a clipped core whose colour cannot be read, on its beam's line"
 
 
 def beam_term(dist_px: F64, band_px: float) -> F64:
@@ -256,7 +263,10 @@ def second_look(rig: Rig, region: SearchRegion, measures: list[Measure], valid: 
     the ``chosen`` spots (:func:`~sfm_laserscale.detection.joint.agrees`); its clutter term is
     then CLUTTER_AT_RANGE and it is taken when that scores ``min_score``. A blob of the scene's
     texture sits anywhere along a band; a laser's spot sits at the range of the other spots.
-    Taken maxima are appended to ``valid``; returns laser name -> index into ``valid``."""
+    A whitened clipped core (its colour unreadable, :data:`.candidates.WHITENED_MAX_COLOUR`)
+    qualifies too, beside two chosen spots or more, on its beam's line at their range
+    (:func:`_whitened_at_range`). Taken maxima are appended to ``valid``; returns laser name ->
+    index into ``valid``."""
     free = set(range(len(valid))) - set(chosen.values())
     pool = [m for m in measures if m.second_look] + [valid[j] for j in sorted(free)]
     ref = _chosen_range(region, valid, chosen)
@@ -266,7 +276,8 @@ def second_look(rig: Rig, region: SearchRegion, measures: list[Measure], valid: 
         if not pool or ref is None or las.name in chosen or not las.calibrated:
             continue
         fits = [(vb, m) for m in pool if las.color in ("any", m.color)
-                and (vb := _second_look_value(m, las.name, region, ref, options))[0] > 0.0]
+                and (vb := _second_look_value(m, las.name, region, ref, options,
+                                              len(chosen) >= WHITENED_LOOK_SPOTS))[0] > 0.0]
         if fits:
             (value, beam), m = max(fits, key=lambda f: f[0][0])
             _take_second_look(m, las.name, value, beam)
@@ -288,23 +299,34 @@ def _chosen_range(region: SearchRegion, valid: list[Measure], chosen: dict[str, 
 
 
 def _second_look_value(m: Measure, name: str, region: SearchRegion, ref_m: float,
-                       options: DetectionOptions) -> tuple[float, float]:
+                       options: DetectionOptions, whitened_ok: bool) -> tuple[float, float]:
     """(score, beam term) of a second-look maximum for a laser; score 0 when it does not
-    qualify."""
+    qualify. A whitened clipped core (``whitened_ok``: beside WHITENED_LOOK_SPOTS chosen spots
+    or more) scores with CLIPPED_COLOUR for its colour where :func:`_whitened_at_range`."""
     line = region.polylines[name]
-    if len(line) == 0 or m.colour.term < LIT_COLOUR:
+    rescued = m.whitened  # its colour term is below WHITENED_MAX_COLOUR < LIT_COLOUR
+    if len(line) == 0 or (m.colour.term < LIT_COLOUR and not (rescued and whitened_ok)):
         return 0.0, 0.0
-    xy = np.array([[m.x, m.y]])
-    dist = float(distance_to_polyline(xy, line)[0])
-    if dist > region.band_px:
+    dist = float(distance_to_polyline(np.array([[m.x, m.y]]), line)[0])
+    range_m = _range_m(m, name, region)
+    if rescued:
+        if not _whitened_at_range(dist, range_m, ref_m, region.band_px):
+            return 0.0, 0.0
+    elif dist > region.band_px or not agrees(range_m, ref_m):
         return 0.0, 0.0
-    if not agrees(_range_m(m, name, region), ref_m):
-        return 0.0, 0.0
-    terms = {**m.terms, "clutter": CLUTTER_AT_RANGE}
+    terms = {**m.terms, "clutter": CLUTTER_AT_RANGE,
+             "colour": CLIPPED_COLOUR if rescued else m.colour.term}
     beam = float(beam_term(np.array([dist]), region.band_px)[0])
-    value = (float(np.prod(list(terms.values()))) * m.colour.term * beam
-             * m.depth.get(name, 1.0))
+    value = float(np.prod(list(terms.values()))) * beam * m.depth.get(name, 1.0)
     return (value, beam) if value >= options.min_score else (0.0, 0.0)
+
+
+def _whitened_at_range(dist_px: float, range_m: float, ref_m: float, band_px: float) -> bool:
+    """Whether a whitened clipped core lies on its beam's image (within ALL_WHITENED_BEAM ×
+    ``band_px``) at the chosen spots' range ``ref_m`` (within RESCUE_RANGE_LN): a glint lies
+    anywhere across a band and along it, a spot on its beam's line at the floor's range."""
+    return (dist_px <= ALL_WHITENED_BEAM * band_px and math.isfinite(range_m) and range_m > 0
+            and abs(math.log(range_m / ref_m)) <= RESCUE_RANGE_LN)
 
 
 def _take_second_look(m: Measure, name: str, value: float, beam: float) -> None:
@@ -313,10 +335,13 @@ def _take_second_look(m: Measure, name: str, value: float, beam: float) -> None:
     m.terms["clutter"] = CLUTTER_AT_RANGE
     m.range_fit[name] = 1.0
     m.evidence = evidence(m, beam, name)
+    if m.whitened:
+        m.evidence["colour"] = CLIPPED_COLOUR
     m.rejected, m.laser, m.score = None, name, value
     strength = ("below the clutter gate" if gated else "its clutter term waived")
     m.reason = (f"assigned to {name}: {strength} ({m.clutter_ratio:.2f} × clutter level), "
-                "laser-coloured, at the range of the other lasers' spots")
+                f"{WHITENED_AT_RANGE if m.whitened else 'laser-coloured'}, at the range of the "
+                "other lasers' spots")
 
 
 def assign_uncalibrated(
