@@ -26,7 +26,6 @@ from sfm_laserscale.detection.joint import (
     CLIPPED_COLOUR,
     DEPTH,
     MAX_OPTIONS,
-    RESCUE_RANGE_LN,
     Choice,
     Option,
     agrees,
@@ -52,8 +51,6 @@ CLUTTER_AT_RANGE = 1.0
 #: chosen spots needed before the second look takes a whitened clipped core: one spot's range
 #: is weak backing (a glint on a band's line agrees with a lone false spot in laser-free frames)
 WHITENED_LOOK_SPOTS = 2
-#: how a second-look reason names a whitened clipped core
-WHITENED_AT_RANGE = "a clipped core whose colour cannot be read, on its beam's line"
 
 
 def beam_term(dist_px: F64, band_px: float) -> F64:
@@ -198,14 +195,16 @@ def _mark_choice(opts: dict[str, list[Option]], choice: Choice, valid: list[Meas
             m.depth[name] = choice.depth[name] if mine else depth_term(o, others)
 
 
+#: how a reason names a whitened clipped core (:data:`.candidates.WHITENED_MAX_COLOUR`)
+UNREADABLE_CORE = "a clipped core whose colour cannot be read"
 #: the reasons of whitened cores taken at the other lasers' range, alone on their beams' lines
 #: at one range, and as a pair whose floor holds the other lasers' spots (:mod:`.joint`)
-RESCUED_BESIDE = ("a clipped core whose colour cannot be read, at the range of the other "
-                  "lasers' spots")
-RESCUED_ALONE = ("a clipped core whose colour cannot be read, one of {n} such cores on their "
-                 "beams' lines at one range")
-RESCUED_PAIR = ("a clipped core whose colour cannot be read, one of 2 such cores on their beams' "
-                "lines at one range, where the floor through them holds the other lasers' spots")
+RESCUED_BESIDE = f"{UNREADABLE_CORE}, at the range of the other lasers' spots"
+RESCUED_ALONE = f"{UNREADABLE_CORE}, one of {{n}} such cores on their beams' lines at one range"
+RESCUED_PAIR = (f"{UNREADABLE_CORE}, one of 2 such cores on their beams' lines at one range, "
+                "where the floor through them holds the other lasers' spots")
+#: … and taken on the second look, on its beam's line (at the other lasers' spots' range)
+WHITENED_AT_RANGE = f"{UNREADABLE_CORE}, on its beam's line"
 
 
 def take_choice(rig: Rig, region: SearchRegion, valid: list[Measure], dist: F64,
@@ -304,18 +303,16 @@ def _second_look_value(m: Measure, name: str, region: SearchRegion, ref_m: float
     qualify. A whitened clipped core (``whitened_ok``: beside WHITENED_LOOK_SPOTS chosen spots
     or more) scores with CLIPPED_COLOUR for its colour where :func:`_whitened_at_range`."""
     line = region.polylines[name]
-    rescued = m.whitened  # its colour term is below WHITENED_MAX_COLOUR < LIT_COLOUR
-    if len(line) == 0 or (m.colour.term < LIT_COLOUR and not (rescued and whitened_ok)):
+    lit = m.colour.term >= LIT_COLOUR  # a whitened core's is below WHITENED_MAX_COLOUR
+    if len(line) == 0 or not (lit or (m.whitened and whitened_ok)):
         return 0.0, 0.0
     dist = float(distance_to_polyline(np.array([[m.x, m.y]]), line)[0])
     range_m = _range_m(m, name, region)
-    if rescued:
-        if not _whitened_at_range(dist, range_m, ref_m, region.band_px):
-            return 0.0, 0.0
-    elif dist > region.band_px or not agrees(range_m, ref_m):
+    if not (_whitened_at_range(dist, range_m, ref_m, region.band_px) if m.whitened
+            else dist <= region.band_px and agrees(range_m, ref_m)):
         return 0.0, 0.0
     terms = {**m.terms, "clutter": CLUTTER_AT_RANGE,
-             "colour": CLIPPED_COLOUR if rescued else m.colour.term}
+             "colour": CLIPPED_COLOUR if m.whitened else m.colour.term}
     beam = float(beam_term(np.array([dist]), region.band_px)[0])
     value = float(np.prod(list(terms.values()))) * beam * m.depth.get(name, 1.0)
     return (value, beam) if value >= options.min_score else (0.0, 0.0)
@@ -323,10 +320,9 @@ def _second_look_value(m: Measure, name: str, region: SearchRegion, ref_m: float
 
 def _whitened_at_range(dist_px: float, range_m: float, ref_m: float, band_px: float) -> bool:
     """Whether a whitened clipped core lies on its beam's image (within ALL_WHITENED_BEAM ×
-    ``band_px``) at the chosen spots' range ``ref_m`` (within RESCUE_RANGE_LN): a glint lies
-    anywhere across a band and along it, a spot on its beam's line at the floor's range."""
-    return (dist_px <= ALL_WHITENED_BEAM * band_px and math.isfinite(range_m) and range_m > 0
-            and abs(math.log(range_m / ref_m)) <= RESCUE_RANGE_LN)
+    ``band_px``) at the chosen spots' range ``ref_m`` (:func:`.joint.agrees`, as any spot the
+    second look takes): a glint lies anywhere across a band, a spot on its beam's line."""
+    return dist_px <= ALL_WHITENED_BEAM * band_px and agrees(range_m, ref_m)
 
 
 def _take_second_look(m: Measure, name: str, value: float, beam: float) -> None:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from sfm_laserscale.detection.assign import beam_term, evidence, why_weak
+from sfm_laserscale.detection.assign import UNREADABLE_CORE, beam_term, evidence, why_weak
 from sfm_laserscale.detection.beams import SearchRegion, distance_to_polyline
 from sfm_laserscale.detection.candidates import Measure
 from sfm_laserscale.detection.options import DetectionOptions
@@ -35,7 +35,7 @@ def _line(m: Measure, las: Laser, d: float, band: float, options: DetectionOptio
     beam = float(beam_term(np.array([d]), band)[0])
     score = float(np.prod(list(evidence(m, beam, las.name).values())))
     if score < options.min_score:
-        why = (f"a clipped core whose colour cannot be read, not taken at the laser's colour: "
+        why = (f"{UNREADABLE_CORE}, not taken at the laser's colour: "
                f"{m.not_rescued[las.name]}" if las.name in m.not_rescued
                else why_weak(m, beam, las.name))
         return f"{where} score {score:.2f} < min_score {options.min_score:g}: {why}"
