@@ -10,9 +10,19 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from sfm_laserscale.detection import DetectionOptions, beam_polyline_px, detect_spots
+from sfm_laserscale.commands.detect import parse_camera
+from sfm_laserscale.detection import (
+    DetectionOptions,
+    assign,
+    beam_polyline_px,
+    detect_spots,
+    joint,
+)
 from sfm_laserscale.detection.beams import beam_samples, range_along_beam, scene_mask
 from sfm_laserscale.detection.joint import (
+    ALL_WHITENED_BEAM,
+    ALL_WHITENED_WIDE_BEAM,
+    BACKED_BEAM,
     DEPTH,
     PAIRS_TRIED,
     RESCUE_BESIDE_ONE_BEAM,
@@ -30,6 +40,7 @@ from sfm_laserscale.model import Camera
 from sfm_laserscale.report.overlays import draw_overlay, near_misses
 from sfm_laserscale.rig import Rig, rig_from_dict
 from sfm_laserscale.synthetic.spots import paint_spot, to_uint8
+from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
 
 CAMERA = Camera(1, "PINHOLE", 1024, 768, np.array([900.0, 900.0, 512.0, 384.0]))
 WATER = (0.06, 0.30, 0.34)  # linear blue-green scene
@@ -217,6 +228,63 @@ def test_a_core_not_rescued_says_which_test_it_failed() -> None:
         "the combination without it scored higher")
 
 
+def test_a_whitened_core_on_its_line_at_a_lone_spots_range_backs_it() -> None:
+    """Seed 3's `clipped_cores` 0: L4's spot (0.52, 3.91 m, 0.21 band_px off its line) agrees
+    with no other spot taken on its own evidence, so it was judged against L2's lead, a blob
+    at 0.78 m, and fell below min_score; L3's whitened core at 3.81 m, on its line, was then
+    rescued beside nothing. A rescued core on its line at the lone option's range backs it."""
+    options = {"L2": [Option(0, 0.36, 0.78, beam_share=0.25)],
+               "L3": [Option(1, 0.04, 3.81, rescue=0.67, beam_share=0.06)],
+               "L4": [Option(2, 0.52, 3.91, beam_share=0.21)]}
+    assert _taken(options) == {"L3": 1, "L4": 2}
+    # not backed: the core off its line, at another range, or the spot beyond BACKED_BEAM
+    off_line = replace(options["L3"][0], beam_share=ALL_WHITENED_BEAM + 0.02)
+    elsewhere = replace(options["L3"][0], range_m=3.0)
+    far = replace(options["L4"][0], beam_share=BACKED_BEAM + 0.05)
+    assert _taken(options | {"L3": [off_line]}) == {}
+    assert _taken(options | {"L3": [elsewhere]}) == {}
+    assert _taken(options | {"L4": [far]}) == {}
+    # without the far lead, the lone spot stands with its core as before
+    assert _taken({n: o for n, o in options.items() if n != "L2"}) == {"L3": 1, "L4": 2}
+
+
+def test_a_backed_spot_frees_a_whole_physical_frame() -> None:
+    """Seed 2's `green_all` 0 at 1920 x 1080 (a draw no rule was written on before): L2's spot
+    (0.51) agrees with no other spot taken on its own evidence, and L1's lead, a blob at 1.3 m,
+    vetoed it; the joint choice took three false spots 93-120 px from the truths instead.
+    Backed by a whitened core on its line at its range, all four spots are found within
+    0.7 px, none false."""
+    ci = list(CONDITIONS).index("green_all")
+    frame = render_frame("green_all", 1920, 1080, np.random.default_rng([2, ci, 0, 0]))
+    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
+    res = detect_spots(frame.image_rgb, camera, rig)
+    assert {s.laser for s in res.spots} == {"L1", "L2", "L3", "L4"}
+    for spot in res.spots:
+        truth = frame.truth[spot.laser]
+        assert truth is not None and math.dist((spot.x, spot.y), truth) < 0.7, spot
+
+
+def test_a_spot_the_joint_choice_left_out_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Seed 3's `clipped_cores` 0 at 1920 x 1080: L4's spot, backed by L3's whitened core, is
+    found with it. Unbacked (BACKED_BEAM below every option's share) nothing is chosen, and
+    L4's spot, which reaches min_score on its own, must not read "a better candidate was
+    assigned to L4" (none was) but name the joint choice."""
+    ci = list(CONDITIONS).index("clipped_cores")
+    frame = render_frame("clipped_cores", 1920, 1080, np.random.default_rng([3, ci, 0, 0]))
+    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
+    truth = frame.truth["L4"]
+    assert truth is not None
+    res = detect_spots(frame.image_rgb, camera, rig)
+    got = {s.laser: s for s in res.spots}
+    assert {"L3", "L4"} <= set(got) and math.dist((got["L4"].x, got["L4"].y), truth) < 0.5
+    monkeypatch.setattr(joint, "BACKED_BEAM", -1.0)
+    res = detect_spots(frame.image_rgb, camera, rig)
+    assert res.spots == ()
+    l4 = next(c for c in res.candidates if math.dist((c.x, c.y), truth) < 0.5 and c.score > 0.25)
+    assert l4.reason == f"not chosen for L4: {assign.LEFT_OUT}", l4.reason
+    assert "not chosen for L4" in res.missing["L4"]
+
+
 def test_whitened_cores_alone_are_taken_only_on_their_beams_at_one_range() -> None:
     """A frame whose every spot is a whitened core (seed 0 `marine_snow` 19: three cores
     0.2-0.6 px from their beams' images, at 3.10-3.14 m) has no spot on its own evidence; three
@@ -241,6 +309,46 @@ def test_whitened_cores_alone_are_taken_only_on_their_beams_at_one_range() -> No
     assert valued is not None and valued[0] == pytest.approx(1.8)
     combo["D"] = replace(combo["D"], rescue=0.2)  # worth less than min_score
     assert all_whitened_value(combo, 0.25) is None
+
+
+def test_four_whitened_cores_may_lie_farther_from_their_beams_than_three() -> None:
+    """Three whitened cores alone must each lie within ALL_WHITENED_BEAM of their beam's image;
+    four (one per beam: chance agreement of four glints is far rarer) within
+    ALL_WHITENED_WIDE_BEAM. Seed 2's `clipped_cores` 7: four cores 0.03-0.12 band_px off."""
+    def combo(shares: list[float]) -> dict[str, Option]:
+        return {f"L{i + 1}": Option(i, 0.05, 4.2 + 0.02 * i, rescue=0.6, beam_share=share,
+                                    rescued=True) for i, share in enumerate(shares)}
+
+    between = 0.5 * (ALL_WHITENED_BEAM + ALL_WHITENED_WIDE_BEAM)
+    assert all_whitened_value(combo([0.03, between, 0.04]), 0.25) is None
+    assert all_whitened_value(combo([0.03, 0.05, 0.04]), 0.25) is not None
+    four = all_whitened_value(combo([0.03, between, between, 0.04]), 0.25)
+    assert four is not None and sorted(four[1].chosen) == ["L1", "L2", "L3", "L4"]
+    beyond = ALL_WHITENED_WIDE_BEAM + 0.01
+    assert all_whitened_value(combo([0.03, beyond, between, 0.04]), 0.25) is None
+    # a pair is never widened: it is a floor to search, not a choice
+    assert all_whitened_value(combo([between, 0.03]), 0.25, 2) is None
+
+
+def test_four_whitened_cores_are_found_on_a_physical_frame(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Seed 2's `clipped_cores` 7 at 1920 x 1080 (a draw no rule was written on): four clipped
+    cores 8-49 x white whose rims read white, two of them 0.107 and 0.115 band_px from their
+    beams' images. All four are found within 0.5 px as whitened cores alone; with the four
+    held to three's line limit, none is."""
+    ci = list(CONDITIONS).index("clipped_cores")
+    frame = render_frame("clipped_cores", 1920, 1080, np.random.default_rng([2, ci, 0, 7]))
+    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
+    res = detect_spots(frame.image_rgb, camera, rig)
+    assert {s.laser for s in res.spots} == {"L1", "L2", "L3", "L4"}
+    for spot in res.spots:
+        truth = frame.truth[spot.laser]
+        assert truth is not None and math.dist((spot.x, spot.y), truth) < 0.5
+    taken = [c for c in res.candidates if c.laser is not None]
+    assert all("one of 4 such cores on their beams' lines at one range" in c.reason
+               for c in taken), [c.reason for c in taken]
+    monkeypatch.setattr(joint, "ALL_WHITENED_WIDE_BEAM", ALL_WHITENED_BEAM)
+    assert detect_spots(frame.image_rgb, camera, rig).spots == ()
 
 
 def test_two_whitened_cores_on_their_beams_at_one_range_are_a_floor_to_search() -> None:
@@ -454,9 +562,11 @@ def test_a_white_glint_streak_in_a_laser_free_frame_is_not_taken_for_a_spot() ->
 def test_a_frame_whose_every_spot_is_a_whitened_core_keeps_its_spots() -> None:
     """``marine_snow`` frame 19 at 1920 × 1080 (seed 0; rendered by the independent
     generator): four 532 nm spots 4-16 × white, whose rims read white (colour 0.08-0.19), and
-    L3's laser-coloured option is judged alone against a lit particle. Three of the cores lie
-    0.2-0.6 px from their beams' images at 3.10-3.14 m: they are taken, and the floor through
-    them finds L3."""
+    L3's laser-coloured option agrees with no other option taken on its own evidence; a lit
+    particle's lead would veto it. Three of the cores lie 0.2-0.6 px from their beams' images
+    at 3.10-3.14 m. Until the twenty-ninth round the three were taken alone and the floor
+    through them found L3; now they back L3's option (:func:`.joint._backed`) and are taken
+    at its range: the same four spots."""
     from sfm_laserscale.commands.detect import parse_camera
     from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
 
@@ -469,7 +579,7 @@ def test_a_frame_whose_every_spot_is_a_whitened_core_keeps_its_spots() -> None:
     for laser, xy in got.items():
         assert math.dist(xy, frame.truth[laser]) < 0.5
     reasons = {c.laser: c.reason for c in res.candidates if c.laser}
-    assert "one of 3 such cores on their beams' lines at one range" in reasons["L1"]
+    assert reasons["L1"] == f"assigned to L1: {assign.RESCUED_BESIDE}"
 
 
 def test_a_missing_laser_names_the_rescue_test_its_core_failed() -> None:

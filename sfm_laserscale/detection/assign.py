@@ -205,6 +205,11 @@ RESCUED_PAIR = (f"{UNREADABLE_CORE}, one of 2 such cores on their beams' lines a
                 "where the floor through them holds the other lasers' spots")
 #: … and taken on the second look, on its beam's line (at the other lasers' spots' range)
 WHITENED_AT_RANGE = f"{UNREADABLE_CORE}, on its beam's line"
+#: why a candidate reaching min_score on its own was not chosen for a laser left without a
+#: spot: every combination holding it put an option below min_score, or the spot chosen
+#: instead was dropped afterwards (alone in its image)
+LEFT_OUT = ("the joint choice left it out (its range disagrees with the other lasers' "
+            "candidates, or the spot chosen instead was dropped afterwards)")
 
 
 def take_choice(rig: Rig, region: SearchRegion, valid: list[Measure], dist: F64,
@@ -377,6 +382,7 @@ def explain_unused(rig: Rig, valid: list[Measure], dist: F64, band: float,
                    options: DetectionOptions) -> None:
     """Fill the reason, evidence and a geometry-aware score of valid candidates left over."""
     names = rig.names
+    taken = {m.laser for m in valid if m.laser is not None}
     for j, m in enumerate(valid):
         if m.laser is not None:
             continue
@@ -392,5 +398,7 @@ def explain_unused(rig: Rig, valid: list[Measure], dist: F64, band: float,
             m.reason = "no calibrated laser of its colour to take it"
         elif col[li] > band:
             m.reason = f"off every beam band (nearest: {names[li]} at {col[li]:.1f} px)"
-        else:
+        elif names[li] in taken:
             m.reason = f"a better candidate was assigned to {names[li]}"
+        else:
+            m.reason = f"not chosen for {names[li]}: {LEFT_OUT}"

@@ -36,12 +36,18 @@ each candidate to one laser (:func:`combination_value`):
   weak backing, and a band dense with glints holds one at any range. Whitened cores that
   agree only with each other are taken only as a combination of ALL_WHITENED_MIN or more, each
   within ALL_WHITENED_BEAM × ``band_px`` (how far a spot may lie from its beam's image) of that
-  image and all within ALL_WHITENED_RANGE_LN of their median range (:func:`all_whitened_value`):
+  image and all within ALL_WHITENED_RANGE_LN of their median range (:func:`all_whitened_value`;
+  four or more, ALL_WHITENED_WIDE_MIN, within ALL_WHITENED_WIDE_BEAM × ``band_px``):
   at 4000 × 3000 the bands hold enough glints that three or four of them agree within 15 % in
   most laser-free frames, but not on their beams' lines as well (a laser's spot lies on its
   beam within the rig's calibration error, a glint anywhere across the band). Two such cores
   alone (:func:`whitened_pairs`) are a floor to search the other beams on: they are taken
   where the search finds PAIR_FLOOR_SPOTS other lasers' spots on it (:mod:`.detect`).
+- an option taken on its own evidence that no other such option agrees with is judged
+  against the other lasers' ranges (their option, else their lead), unless a rescued core of
+  its combination backs it (:func:`_backed`): the core on its beam's line at the option's range,
+  the option within BACKED_BEAM × ``band_px`` of its own. A false lead of another laser (a
+  particle near the camera) then no longer vetoes a spot that a whitened core agrees with.
 
 The combination of the highest total wins (ties: more spots). Particles lit by the beams are
 laser-coloured and strong, but their ranges agree neither with each other nor with the floor;
@@ -86,6 +92,15 @@ ALL_WHITENED_MIN = 3
 ALL_WHITENED_BEAM = 0.1
 #: … and all within this (natural log) of their median range
 ALL_WHITENED_RANGE_LN = 0.08
+#: a combination of this many whitened cores or more (one per beam of a four-beam scaler) …
+ALL_WHITENED_WIDE_MIN = 4
+#: … may lie this many ``band_px`` from their beams' images: 1.5 times the rig's stated
+#: calibration error, which ALL_WHITENED_BEAM is about (it holds two true cores in three)
+ALL_WHITENED_WIDE_BEAM = 0.15
+#: an option taken on its own evidence within this many ``band_px`` of its beam's image (about
+#: 99 % of true spots: docs/DETECTION.md), with a rescued core on its line at its range, is not
+#: judged alone against the other lasers' leads (:func:`_backed`)
+BACKED_BEAM = 0.3
 #: two such cores alone are taken when the floor through them holds this many other lasers'
 #: spots (:func:`whitened_pairs`; the floor search, :mod:`.detect`)
 PAIR_FLOOR_SPOTS = 2
@@ -201,13 +216,24 @@ def _lone_reference(name: str, plain: dict[str, Option], lead_m: dict[str, float
     return float(np.median(ranges)) if ranges else math.nan
 
 
-def _lone(plain: dict[str, Option]) -> set[str]:
+def _lone(plain: dict[str, Option], rescues: list[Option]) -> set[str]:
     """The options taken on their own evidence whose range no other such option of their
-    combination agrees with (within LEAD_AGREEMENT_LN). Whitened cores do not count: one or
-    two glints agree with a blob by chance in many laser-free frames."""
+    combination agrees with (within LEAD_AGREEMENT_LN), and that no rescued core backs
+    (:func:`_backed`). Other whitened cores do not count: one or two glints agree with a blob
+    by chance in many laser-free frames."""
     return {n for n, o in plain.items()
             if not any(abs(math.log(p.range_m / o.range_m)) <= LEAD_AGREEMENT_LN
-                       for m, p in plain.items() if m != n)}
+                       for m, p in plain.items() if m != n)
+            and not _backed(o, rescues)}
+
+
+def _backed(o: Option, rescues: list[Option]) -> bool:
+    """Whether an option within BACKED_BEAM × ``band_px`` of its beam's image has a rescued
+    core of its combination within ALL_WHITENED_BEAM × ``band_px`` of its own beam's image, at
+    its range (:func:`agrees`): two lasers' light on their beams' lines at one range, as a pair
+    of whitened cores is, and one of them of the laser's colour."""
+    return o.beam_share <= BACKED_BEAM and any(
+        r.beam_share <= ALL_WHITENED_BEAM and agrees(r.range_m, o.range_m) for r in rescues)
 
 
 def combination_value(combo: dict[str, Option], min_score: float,
@@ -216,8 +242,9 @@ def combination_value(combo: dict[str, Option], min_score: float,
     """(total value, choice) of one combination (laser -> option), or None when an option
     fails in it (module docstring). The options taken on their own evidence that agree with
     another one are judged against r_ref, of their ranges the one that maximises the total; an
-    option no other agrees with against the other lasers (:func:`_lone_reference`; ``lead_m``:
-    :func:`lead_ranges`), as every laser was before the choice was joint."""
+    option no other agrees with, nor a rescued core backs (:func:`_lone`), against the other
+    lasers (:func:`_lone_reference`; ``lead_m``: :func:`lead_ranges`), as every laser was
+    before the choice was joint."""
     plain = {n: o for n, o in combo.items() if not o.rescued}
     rescues = [o for o in combo.values() if o.rescued]
     if not plain:
@@ -228,7 +255,7 @@ def combination_value(combo: dict[str, Option], min_score: float,
     rescue_values = [o.rescue * depth[n] for n, o in combo.items() if o.rescued]
     if rescue_values and min(rescue_values) < min_score:
         return None
-    refs = {n: _lone_reference(n, plain, lead_m or {}) for n in _lone(plain)}
+    refs = {n: _lone_reference(n, plain, lead_m or {}) for n in _lone(plain, rescues)}
     lone_values = [plain[n].score * depth[n] * range_term(plain[n].range_m, r)
                    for n, r in refs.items()]
     if lone_values and min(lone_values) < min_score:
@@ -252,11 +279,15 @@ def all_whitened_value(combo: dict[str, Option], min_score: float,
                        min_count: int = ALL_WHITENED_MIN) -> tuple[float, Choice] | None:
     """(total value, choice) of a combination of whitened cores alone (every option
     ``rescued``), or None: it needs ``min_count`` options or more, each within
-    ALL_WHITENED_BEAM × ``band_px`` of its beam's image, all within ALL_WHITENED_RANGE_LN of
-    their median range (its floor range), and each worth ``min_score`` with its depth term."""
+    ALL_WHITENED_BEAM × ``band_px`` of its beam's image (ALL_WHITENED_WIDE_BEAM for
+    ALL_WHITENED_WIDE_MIN options or more: four glints agree by chance far more rarely than
+    three), all within ALL_WHITENED_RANGE_LN of their median range (its floor range), and each
+    worth ``min_score`` with its depth term."""
     opts = list(combo.values())
+    wide = len(opts) >= ALL_WHITENED_WIDE_MIN
+    beam_limit = ALL_WHITENED_WIDE_BEAM if wide else ALL_WHITENED_BEAM
     if len(opts) < min_count or any(
-            o.beam_share > ALL_WHITENED_BEAM or not math.isfinite(o.range_m) for o in opts):
+            o.beam_share > beam_limit or not math.isfinite(o.range_m) for o in opts):
         return None
     ref = float(np.median([o.range_m for o in opts]))
     if any(abs(math.log(o.range_m / ref)) > ALL_WHITENED_RANGE_LN for o in opts):
