@@ -36,11 +36,11 @@ from sfm_laserscale.detection.joint import (
     why_not_rescued,
 )
 from sfm_laserscale.detection.score import UNMEASURED_UNCLIPPED, AddedLight, colour_evidence
-from sfm_laserscale.model import Camera
+from sfm_laserscale.model import Camera, Spot
 from sfm_laserscale.report.overlays import draw_overlay, near_misses
 from sfm_laserscale.rig import Rig, rig_from_dict
 from sfm_laserscale.synthetic.spots import paint_spot, to_uint8
-from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
+from sfm_laserscale.synthetic.underwater import CONDITIONS, Frame, render_frame
 
 CAMERA = Camera(1, "PINHOLE", 1024, 768, np.array([900.0, 900.0, 512.0, 384.0]))
 WATER = (0.06, 0.30, 0.34)  # linear blue-green scene
@@ -228,6 +228,21 @@ def test_a_core_not_rescued_says_which_test_it_failed() -> None:
         "the combination without it scored higher")
 
 
+def _physical(condition: str, seed: int, index: int) -> tuple[Frame, Camera, Rig]:
+    """A frame of the physical benchmark at 1920 x 1080 (its draw: seed, condition, index)."""
+    ci = list(CONDITIONS).index(condition)
+    frame = render_frame(condition, 1920, 1080, np.random.default_rng([seed, ci, 0, index]))
+    return frame, parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
+
+
+def _all_found(frame: Frame, spots: tuple[Spot, ...], within_px: float) -> None:
+    """Every laser whose spot is in the frame has it, within ``within_px`` of its truth."""
+    assert {s.laser for s in spots} == {n for n, xy in frame.truth.items() if xy is not None}
+    for spot in spots:
+        truth = frame.truth[spot.laser]
+        assert truth is not None and math.dist((spot.x, spot.y), truth) < within_px, spot
+
+
 def test_a_whitened_core_on_its_line_at_a_lone_spots_range_backs_it() -> None:
     """Seed 3's `clipped_cores` 0: L4's spot (0.52, 3.91 m, 0.21 band_px off its line) agrees
     with no other spot taken on its own evidence, so it was judged against L2's lead, a blob
@@ -254,14 +269,8 @@ def test_a_backed_spot_frees_a_whole_physical_frame() -> None:
     vetoed it; the joint choice took three false spots 93-120 px from the truths instead.
     Backed by a whitened core on its line at its range, all four spots are found within
     0.7 px, none false."""
-    ci = list(CONDITIONS).index("green_all")
-    frame = render_frame("green_all", 1920, 1080, np.random.default_rng([2, ci, 0, 0]))
-    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
-    res = detect_spots(frame.image_rgb, camera, rig)
-    assert {s.laser for s in res.spots} == {"L1", "L2", "L3", "L4"}
-    for spot in res.spots:
-        truth = frame.truth[spot.laser]
-        assert truth is not None and math.dist((spot.x, spot.y), truth) < 0.7, spot
+    frame, camera, rig = _physical("green_all", 2, 0)
+    _all_found(frame, detect_spots(frame.image_rgb, camera, rig).spots, 0.7)
 
 
 def test_a_spot_the_joint_choice_left_out_says_so(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -269,9 +278,7 @@ def test_a_spot_the_joint_choice_left_out_says_so(monkeypatch: pytest.MonkeyPatc
     found with it. Unbacked (BACKED_BEAM below every option's share) nothing is chosen, and
     L4's spot, which reaches min_score on its own, must not read "a better candidate was
     assigned to L4" (none was) but name the joint choice."""
-    ci = list(CONDITIONS).index("clipped_cores")
-    frame = render_frame("clipped_cores", 1920, 1080, np.random.default_rng([3, ci, 0, 0]))
-    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
+    frame, camera, rig = _physical("clipped_cores", 3, 0)
     truth = frame.truth["L4"]
     assert truth is not None
     res = detect_spots(frame.image_rgb, camera, rig)
@@ -336,14 +343,9 @@ def test_four_whitened_cores_are_found_on_a_physical_frame(
     cores 8-49 x white whose rims read white, two of them 0.107 and 0.115 band_px from their
     beams' images. All four are found within 0.5 px as whitened cores alone; with the four
     held to three's line limit, none is."""
-    ci = list(CONDITIONS).index("clipped_cores")
-    frame = render_frame("clipped_cores", 1920, 1080, np.random.default_rng([2, ci, 0, 7]))
-    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
+    frame, camera, rig = _physical("clipped_cores", 2, 7)
     res = detect_spots(frame.image_rgb, camera, rig)
-    assert {s.laser for s in res.spots} == {"L1", "L2", "L3", "L4"}
-    for spot in res.spots:
-        truth = frame.truth[spot.laser]
-        assert truth is not None and math.dist((spot.x, spot.y), truth) < 0.5
+    _all_found(frame, res.spots, 0.5)
     taken = [c for c in res.candidates if c.laser is not None]
     assert all("one of 4 such cores on their beams' lines at one range" in c.reason
                for c in taken), [c.reason for c in taken]
