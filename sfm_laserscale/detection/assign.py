@@ -22,7 +22,6 @@ from numpy.typing import NDArray
 from sfm_laserscale.detection.beams import SearchRegion, distance_to_polyline, range_along_beam
 from sfm_laserscale.detection.candidates import Measure
 from sfm_laserscale.detection.joint import (
-    ALL_WHITENED_BEAM,
     CLIPPED_COLOUR,
     DEPTH,
     MAX_OPTIONS,
@@ -30,6 +29,7 @@ from sfm_laserscale.detection.joint import (
     Option,
     agrees,
     choose_jointly,
+    core_on_line_at,
     depth_term,
     laser_options,
     range_term,
@@ -324,10 +324,9 @@ def _second_look_value(m: Measure, name: str, region: SearchRegion, ref_m: float
 
 
 def _whitened_at_range(dist_px: float, range_m: float, ref_m: float, band_px: float) -> bool:
-    """Whether a whitened clipped core lies on its beam's image (within ALL_WHITENED_BEAM ×
-    ``band_px``) at the chosen spots' range ``ref_m`` (:func:`.joint.agrees`, as any spot the
-    second look takes): a glint lies anywhere across a band, a spot on its beam's line."""
-    return dist_px <= ALL_WHITENED_BEAM * band_px and agrees(range_m, ref_m)
+    """Whether a whitened clipped core ``dist_px`` from its beam's image lies on it at the
+    chosen spots' range ``ref_m`` (:func:`.joint.core_on_line_at`, the joint choice's test)."""
+    return core_on_line_at(dist_px / band_px, range_m, ref_m)
 
 
 def _take_second_look(m: Measure, name: str, value: float, beam: float) -> None:

@@ -227,13 +227,20 @@ def _lone(plain: dict[str, Option], rescues: list[Option]) -> set[str]:
             and not _backed(o, rescues)}
 
 
+def core_on_line_at(beam_share: float, range_m: float, ref_m: float) -> bool:
+    """Whether a whitened core ``beam_share`` ``band_px`` from its beam's image lies on it
+    (within ALL_WHITENED_BEAM) at the range ``ref_m`` (:func:`agrees`): a glint lies anywhere
+    across a band, a laser's spot on its beam's line within the rig's calibration error."""
+    return beam_share <= ALL_WHITENED_BEAM and agrees(range_m, ref_m)
+
+
 def _backed(o: Option, rescues: list[Option]) -> bool:
     """Whether an option within BACKED_BEAM × ``band_px`` of its beam's image has a rescued
-    core of its combination within ALL_WHITENED_BEAM × ``band_px`` of its own beam's image, at
-    its range (:func:`agrees`): two lasers' light on their beams' lines at one range, as a pair
+    core of its combination on its own beam's line at the option's range
+    (:func:`core_on_line_at`): two lasers' light on their beams' lines at one range, as a pair
     of whitened cores is, and one of them of the laser's colour."""
     return o.beam_share <= BACKED_BEAM and any(
-        r.beam_share <= ALL_WHITENED_BEAM and agrees(r.range_m, o.range_m) for r in rescues)
+        core_on_line_at(r.beam_share, r.range_m, o.range_m) for r in rescues)
 
 
 def combination_value(combo: dict[str, Option], min_score: float,
