@@ -4,7 +4,8 @@ Usage::
 
     python scripts/bench_detection_physical.py [--per-condition 20]
         [--sizes 1920x1080,4000x3000] [--conditions clipped_cores,green_water,...]
-        [--seed 0] [--workers 2] [--out results.json] [--markdown] [--visibility]
+        [--seed 0 | --seed 2-5 | --seed 2,4] [--workers 2] [--out results.json] [--markdown]
+        [--visibility] [--cache DIR] [--compare earlier.json]
 
 Images come from the independent generator ``sfm_laserscale.synthetic.underwater`` (which
 shares no code or parameter with the detector): per condition and size, ``--per-condition``
@@ -25,6 +26,15 @@ from ``result.missing``) and the falses. Targets: found >= 99 %, false <= 0.5 %,
 for each missed spot, how much it changes the photograph (``visible_levels``: the largest
 8-bit difference near the truth); a miss of >= 20 levels is a spot anyone sees.
 
+``--seed`` takes one draw or several (``2-5``, ``2,4``): the summary pools them, and a pooled
+line per draw follows. Rules are written on some draws and checked on others
+(docs/DETECTION.md, "Held-out draws"). ``--cache DIR`` keeps every rendered frame in DIR (one
+file per frame, under a folder named by a hash of the generator's source, so a changed
+generator never reuses stale frames): a run that re-scores the same frames after a change to
+the detector skips the rendering, about half of a run's time. ``--compare earlier.json`` (an
+``--out`` file of an earlier run of the same frames) prints, frame by frame, the spots found,
+lost or moved and the false spots gained or dropped.
+
 ``run_benchmark`` (and ``run_small``, a reduced set for tests) can be imported through
 ``tests/script_loader.py``.
 """
@@ -32,22 +42,25 @@ for each missed spot, how much it changes the photograph (``visible_levels``: th
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import multiprocessing
+import pickle
 import re
 import sys
 import time
 import tomllib
 from collections import Counter
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+import sfm_laserscale.synthetic.underwater as underwater
 from sfm_laserscale.synthetic.underwater import CONDITIONS, Frame, render_frame
 
 MATCH_PX = 1.5
@@ -70,6 +83,7 @@ class Job:
     condition_index: int
     size_index: int
     laser_free: bool = False  # also capture it without the lasers (visibility of misses)
+    cache: str | None = None  # folder of rendered frames (:func:`cached_frame`)
 
     def rng(self) -> np.random.Generator:
         """The frame's own generator (reproducible, independent of the other frames)."""
@@ -79,10 +93,47 @@ class Job:
 
 def jobs_for(conditions: Sequence[str], sizes: Sequence[tuple[int, int]], per_condition: int,
              seed: int, laser_free: bool = False) -> list[Job]:
-    """All images of a run, condition-major."""
+    """All images of a run of one draw (``seed``), condition-major."""
     names = list(CONDITIONS)
     return [Job(c, w, h, i, seed, names.index(c), si, laser_free)
             for c in conditions for si, (w, h) in enumerate(sizes) for i in range(per_condition)]
+
+
+def generator_version() -> str:
+    """A hash (12 hex digits) of the generator's source files: frames cached under another
+    hash came from other code."""
+    digest = hashlib.sha256()
+    for path in sorted(Path(underwater.__file__).parent.glob("*.py")):
+        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()[:12]
+
+
+def cache_path(job: Job) -> Path:
+    """Where ``job``'s rendered frame is kept under ``job.cache``."""
+    if job.cache is None:
+        raise ValueError("the job has no cache folder")
+    name = (f"s{job.seed}_{job.condition}_{job.width}x{job.height}_z{job.size_index}"
+            f"_{job.index:03d}{'_lf' if job.laser_free else ''}.pkl")
+    return Path(job.cache) / generator_version() / name
+
+
+def cached_frame(job: Job) -> Frame:
+    """``job``'s frame: rendered, or read back from ``job.cache`` where an earlier run kept it
+    (pickle: the files are this benchmark's own, written below)."""
+    if job.cache is None:
+        return render_frame(job.condition, job.width, job.height, job.rng(), job.laser_free)
+    path = cache_path(job)
+    if path.exists():
+        with path.open("rb") as f:
+            frame: Frame = pickle.load(f)
+        return frame
+    frame = render_frame(job.condition, job.width, job.height, job.rng(), job.laser_free)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_suffix(f".{multiprocessing.current_process().pid}.part")
+    with partial.open("wb") as f:
+        pickle.dump(frame, f, protocol=pickle.HIGHEST_PROTOCOL)
+    partial.replace(path)  # whole files only, also when two runs share the folder
+    return frame
 
 
 def score_frame(frame: Frame, result: Any) -> dict[str, Any]:
@@ -132,15 +183,16 @@ def run_job(job: Job) -> dict[str, Any]:
     from sfm_laserscale.rig import rig_from_dict
 
     t0 = time.perf_counter()
-    frame = render_frame(job.condition, job.width, job.height, job.rng(), job.laser_free)
+    frame = cached_frame(job)
     t1 = time.perf_counter()
     camera = parse_camera(frame.camera_spec)
     rig = rig_from_dict(tomllib.loads(frame.rig_toml))
     result = detect_spots(frame.image_rgb, camera, rig, DetectionOptions())
     t2 = time.perf_counter()
     rec = score_frame(frame, result)
-    rec.update({"condition": job.condition, "size": f"{job.width}x{job.height}",
-                "index": job.index, "render_s": t1 - t0, "detect_s": t2 - t1,
+    rec.update({"seed": job.seed, "condition": job.condition,
+                "size": f"{job.width}x{job.height}", "index": job.index,
+                "render_s": t1 - t0, "detect_s": t2 - t1,
                 "water": frame.meta["water"], "wavelength_nm": frame.meta["wavelength_nm"],
                 "spot_meta": {k: {m: v for m, v in d.items()
                                   if m in ("peak_over_white", "range_m", "incidence_deg",
@@ -161,12 +213,13 @@ def summarise(records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
         groups.setdefault((rec["condition"], rec["size"]), []).append(rec)
     rows = []
     for (cond, size), recs in groups.items():
-        recs.sort(key=lambda r: r["index"])
+        recs.sort(key=lambda r: (r.get("seed", 0), r["index"]))
         errs = [f["error_px"] for r in recs for f in r["found"]]
         spots = sum(r["truths"] for r in recs)
         reported = sum(r["reported"] for r in recs)
         n_false = sum(len(r["falses"]) for r in recs)
-        misses = [{"image": r["index"], **m} for r in recs for m in r["misses"]]
+        misses = [{"seed": r.get("seed", 0), "image": r["index"], **m}
+                  for r in recs for m in r["misses"]]
         reasons = Counter(_reason_kind(m["reason"]) for m in misses)
         rows.append({
             "condition": cond, "size": size, "images": len(recs), "spots": spots,
@@ -182,7 +235,8 @@ def summarise(records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
             "miss_reasons": reasons.most_common(),
             "misses_visible": _visible_misses(misses),
             "misses": misses,
-            "falses": [{"image": r["index"], **f} for r in recs for f in r["falses"]],
+            "falses": [{"seed": r.get("seed", 0), "image": r["index"], **f}
+                       for r in recs for f in r["falses"]],
         })
     return rows
 
@@ -236,26 +290,35 @@ def _sigma_words(recs: Sequence[dict[str, Any]]) -> str:
 
 
 def pooled_lines(records: Sequence[dict[str, Any]]) -> list[str]:
-    """Per image size: the pooled counts and errors, and the stated σ against the errors for
-    all spots and per laser wavelength."""
+    """Per image size: the pooled counts and errors (and each draw's, when the records hold
+    several), and the stated σ against the errors for all spots and per laser wavelength."""
     lines = []
     for size in dict.fromkeys(r["size"] for r in records):
         recs = [r for r in records if r["size"] == size]
-        errs = [f["error_px"] for r in recs for f in r["found"]]
-        spots = sum(r["truths"] for r in recs)
-        reported = sum(r["reported"] for r in recs)
-        n_false = sum(len(r["falses"]) for r in recs)
-        lines.append(
-            f"{size} pooled: {len(errs)} of {spots} spots found "
-            f"({_fmt(100.0 * len(errs) / spots if spots else None, 1)} %), {n_false} false of "
-            f"{reported} reported ({_fmt(100.0 * n_false / reported if reported else None, 1)}"
-            f" %); median {_fmt(_percentile(errs, 50), 3)} px, p95 "
-            f"{_fmt(_percentile(errs, 95), 3)} px")
+        lines.append(f"{size} pooled: {_counts_words(recs)}")
+        seeds = sorted({r.get("seed", 0) for r in recs})
+        if len(seeds) > 1:
+            lines.extend(f"{size} seed {s}: "
+                         f"{_counts_words([r for r in recs if r.get('seed', 0) == s])}"
+                         for s in seeds)
         lines.append(f"{size} σ, all: {_sigma_words(recs)}")
         for nm in sorted({r["wavelength_nm"] for r in recs if r.get("wavelength_nm")}):
             lines.append(f"{size} σ, {nm:g} nm: "
                          f"{_sigma_words([r for r in recs if r.get('wavelength_nm') == nm])}")
     return lines
+
+
+def _counts_words(recs: Sequence[dict[str, Any]]) -> str:
+    """Spots found, false spots and the found spots' median and p95 error, in words."""
+    errs = [f["error_px"] for r in recs for f in r["found"]]
+    spots = sum(r["truths"] for r in recs)
+    reported = sum(r["reported"] for r in recs)
+    n_false = sum(len(r["falses"]) for r in recs)
+    return (f"{len(errs)} of {spots} spots found "
+            f"({_fmt(100.0 * len(errs) / spots if spots else None, 1)} %), {n_false} false of "
+            f"{reported} reported ({_fmt(100.0 * n_false / reported if reported else None, 1)}"
+            f" %); median {_fmt(_percentile(errs, 50), 3)} px, p95 "
+            f"{_fmt(_percentile(errs, 95), 3)} px")
 
 
 def _reason_kind(reason: str) -> str:
@@ -270,15 +333,20 @@ def _reason_kind(reason: str) -> str:
 
 def run_benchmark(conditions: Sequence[str] | None = None,
                   sizes: Sequence[tuple[int, int]] = DEFAULT_SIZES, per_condition: int = 20,
-                  seed: int = 0, workers: int = 2, laser_free: bool = False
+                  seed: int | Sequence[int] = 0, workers: int = 2, laser_free: bool = False,
+                  cache: Path | None = None
                   ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """(per-image records, per condition x size summary rows); ``laser_free``: also capture
-    every frame without the lasers, to tell how visible each missed spot was."""
+    """(per-image records, per condition x size summary rows, pooled over the draws ``seed``);
+    ``laser_free``: also capture every frame without the lasers, to tell how visible each
+    missed spot was; ``cache``: keep the rendered frames there, or read them back
+    (:func:`cached_frame`)."""
     names = list(conditions) if conditions else list(CONDITIONS)
     unknown = [c for c in names if c not in CONDITIONS]
     if unknown:
         raise ValueError(f"unknown condition(s) {unknown}; known: {list(CONDITIONS)}")
-    jobs = jobs_for(names, sizes, per_condition, seed, laser_free)
+    seeds = [seed] if isinstance(seed, int) else list(seed)
+    jobs = [replace(j, cache=None if cache is None else str(cache))
+            for s in seeds for j in jobs_for(names, sizes, per_condition, s, laser_free)]
     if workers > 1 and len(jobs) > 1:
         pool = multiprocessing.get_context("fork").Pool(workers)
         try:
@@ -288,9 +356,50 @@ def run_benchmark(conditions: Sequence[str] | None = None,
             pool.join()
     else:
         records = [run_job(j) for j in jobs]
-    order = {(j.condition, f"{j.width}x{j.height}", j.index): k for k, j in enumerate(jobs)}
-    records.sort(key=lambda r: order[(r["condition"], r["size"], r["index"])])
+    order = {frame_key(j.seed, j.condition, f"{j.width}x{j.height}", j.index): k
+             for k, j in enumerate(jobs)}
+    records.sort(key=lambda r: order[record_key(r)])
     return records, summarise(records)
+
+
+def frame_key(seed: int, condition: str, size: str, index: int) -> str:
+    """One frame's name in a run: draw, condition, size, image."""
+    return f"seed {seed} {condition} {size} #{index}"
+
+
+def record_key(rec: dict[str, Any]) -> str:
+    """:func:`frame_key` of a per-image record (records without a draw: seed 0)."""
+    return frame_key(rec.get("seed", 0), rec["condition"], rec["size"], rec["index"])
+
+
+def compare_records(old: Sequence[dict[str, Any]], new: Sequence[dict[str, Any]],
+                    moved_px: float = 0.01) -> list[str]:
+    """Frame by frame, what ``new`` finds that ``old`` did not (per-image records of the same
+    frames): spots gained, lost, moved by more than ``moved_px``, false spots gained or
+    dropped; the last line counts them. Frames in only one run are left out and counted."""
+    before = {record_key(r): r for r in old}
+    after = {record_key(r): r for r in new}
+    lines, gained, lost, false_delta = [], 0, 0, 0
+    for key in (k for k in after if k in before):
+        a = {f["laser"]: f["error_px"] for f in before[key]["found"]}
+        b = {f["laser"]: f["error_px"] for f in after[key]["found"]}
+        words = [f"{n} lost ({a[n]:.2f} px)" if n not in b else
+                 f"{n} found ({b[n]:.2f} px)" if n not in a else f"{n} {a[n]:.2f} → {b[n]:.2f} px"
+                 for n in sorted(set(a) | set(b))
+                 if n not in a or n not in b or abs(a[n] - b[n]) > moved_px]
+        gained += len(set(b) - set(a))
+        lost += len(set(a) - set(b))
+        fa, fb = len(before[key]["falses"]), len(after[key]["falses"])
+        false_delta += fb - fa
+        if fa != fb:
+            words.append(f"false {fa} → {fb}")
+        if words:
+            lines.append(f"{key}: " + "; ".join(words))
+    unmatched = len(set(before) ^ set(after))
+    lines.append(f"{len(lines)} frames differ: {gained} spots found, {lost} lost, false spots "
+                 f"{false_delta:+d}" + (f" ({unmatched} frames in one run only)"
+                                        if unmatched else ""))
+    return lines
 
 
 def run_small(conditions: Sequence[str] = ("clipped_cores", "no_lasers"),
@@ -333,6 +442,22 @@ def _sizes(text: str) -> list[tuple[int, int]]:
     return out
 
 
+def _seeds(text: str) -> list[int]:
+    """``0``, ``2-5`` or ``2,4,6`` as a list of draws."""
+    seeds: list[int] = []
+    for part in text.split(","):
+        first, dash, last = part.partition("-")
+        try:
+            lo = int(first)
+            hi = int(last) if dash else lo
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a draw or range of draws: {part!r}") from None
+        if hi < lo:
+            raise argparse.ArgumentTypeError(f"empty range of draws: {part!r}")
+        seeds.extend(range(lo, hi + 1))
+    return seeds
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line entry point."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -341,13 +466,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="comma list of WxH (default 1920x1080,4000x3000)")
     ap.add_argument("--conditions", default="",
                     help=f"comma list (default all): {','.join(CONDITIONS)}")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=_seeds, default=[0],
+                    help="the draw, or several pooled: 2-5 or 2,4,6 (default 0)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None, help="write results JSON here")
     ap.add_argument("--markdown", action="store_true", help="print a Markdown table")
     ap.add_argument("--visibility", action="store_true",
                     help="also capture every frame without the lasers (same noise) and count "
                          "the missed spots that are visible (slower: one more capture)")
+    ap.add_argument("--cache", type=Path, default=None,
+                    help="keep rendered frames in this folder and read them back on later runs")
+    ap.add_argument("--compare", type=Path, default=None,
+                    help="an earlier run's --out file: print what changed, frame by frame")
     args = ap.parse_args(argv)
     conditions = [c for c in args.conditions.split(",") if c] or list(CONDITIONS)
     unknown = [c for c in conditions if c not in CONDITIONS]
@@ -355,11 +485,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         ap.error(f"unknown condition(s) {', '.join(unknown)}; known: {', '.join(CONDITIONS)}")
     t0 = time.perf_counter()
     records, rows = run_benchmark(conditions, args.sizes, args.per_condition, args.seed,
-                                  args.workers, args.visibility)
+                                  args.workers, args.visibility, args.cache)
     elapsed = time.perf_counter() - t0
     if args.out is not None:
         args.out.write_text(json.dumps({"targets": TARGETS, "match_px": MATCH_PX,
-                                        "seed": args.seed, "summary": rows,
+                                        "seeds": args.seed, "summary": rows,
                                         "images": records}, indent=1, default=str))
     if args.markdown:
         print(markdown_table(rows))
@@ -374,6 +504,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if (line := visibility_line(rows)) is not None:
         print(line)
     print("\n".join(pooled_lines(records)))
+    if args.compare is not None:
+        earlier = json.loads(args.compare.read_text())["images"]
+        print(f"against {args.compare}:")
+        print("\n".join(compare_records(earlier, records)))
     print(f"{len(records)} images in {elapsed:.0f} s", file=sys.stderr)
     return 0
 

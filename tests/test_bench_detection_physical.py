@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import argparse
+import json
+from functools import partial
+from pathlib import Path
 from types import ModuleType, SimpleNamespace
 
 import numpy as np
@@ -126,3 +130,76 @@ def test_visibility_of_the_misses(bench: ModuleType) -> None:
     assert bench.visibility_line([{**row, "misses_visible": None}]) is None
     assert bench._visible_misses([]) is None
     assert bench._visible_misses([{"laser": "L1", "visible_levels": None}]) is None
+
+
+def test_draws_parse_as_one_range_or_a_list(bench: ModuleType) -> None:
+    assert bench._seeds("0") == [0]
+    assert bench._seeds("2-5") == [2, 3, 4, 5]
+    assert bench._seeds("2,4-5,9") == [2, 4, 5, 9]
+    for bad in ("5-2", "x", "2-"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            bench._seeds(bad)
+
+
+def _rec(seed: int, index: int, found: dict[str, float], falses: int) -> dict:
+    return {"seed": seed, "condition": "c", "size": "8x8", "index": index,
+            "found": [{"laser": n, "error_px": e} for n, e in found.items()],
+            "falses": [{"laser": "L9"}] * falses}
+
+
+def test_compare_records_frame_by_frame(bench: ModuleType) -> None:
+    old = [_rec(2, 0, {"L1": 0.2, "L2": 0.3}, 0), _rec(2, 1, {"L1": 0.1}, 1),
+           _rec(3, 0, {"L1": 0.4}, 0), _rec(3, 1, {}, 0)]
+    new = [_rec(2, 0, {"L1": 0.2, "L2": 0.305}, 0),  # moved by less than 0.01 px: the same
+           _rec(2, 1, {"L1": 0.1, "L3": 0.5}, 0),  # a spot found, a false spot dropped
+           _rec(3, 0, {"L1": 0.9}, 2),  # moved, two false spots more
+           _rec(4, 0, {}, 0)]  # a frame of another draw
+    lines = bench.compare_records(old, new)
+    assert lines == [
+        "seed 2 c 8x8 #1: L3 found (0.50 px); false 1 → 0",
+        "seed 3 c 8x8 #0: L1 0.40 → 0.90 px; false 0 → 2",
+        "2 frames differ: 1 spots found, 0 lost, false spots +1 (2 frames in one run only)"]
+    assert bench.compare_records(new, old)[0] == "seed 2 c 8x8 #1: L3 lost (0.50 px); false 0 → 1"
+    # records without a draw (runs before draws were pooled) are seed 0
+    assert bench.record_key({"condition": "c", "size": "8x8", "index": 3}) == "seed 0 c 8x8 #3"
+
+
+def test_several_draws_pooled_and_frames_cached(bench: ModuleType, tmp_path: Path) -> None:
+    run = partial(bench.run_benchmark, ("clipped_cores",), ((320, 240),), 2, [0, 1], 1)
+    records, (row,) = run(cache=tmp_path)
+    assert [(r["seed"], r["index"]) for r in records] == [(0, 0), (0, 1), (1, 0), (1, 1)]
+    assert row["images"] == 4 and row["spots"] == 16
+    lines = bench.pooled_lines(records)
+    assert [ln.split(":")[0] for ln in lines[:3]] == ["320x240 pooled", "320x240 seed 0",
+                                                      "320x240 seed 1"]
+    # two draws of the same condition are different photographs
+    assert records[0]["spot_meta"] != records[2]["spot_meta"]
+    cached = sorted(p.name for p in tmp_path.glob("*/*.pkl"))
+    assert cached == [f"s{s}_clipped_cores_320x240_z0_{i:03d}.pkl" for s in (0, 1)
+                      for i in (0, 1)]
+    assert [p.name for p in tmp_path.iterdir()] == [bench.generator_version()]
+    # a second run reads the frames back and scores them the same, spot for spot
+    again, _ = run(cache=tmp_path)
+    assert bench.compare_records(records, again)[-1].startswith("0 frames differ")
+    assert [r["spot_meta"] for r in again] == [r["spot_meta"] for r in records]
+    assert all(b["render_s"] < a["render_s"] for a, b in zip(records, again, strict=True))
+    # and without the cache the same frames are rendered again
+    fresh, _ = run()
+    assert [r["found"] for r in fresh] == [r["found"] for r in records]
+
+
+def test_command_line_draws_cache_and_compare(bench: ModuleType, tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["--sizes", "320x240", "--conditions", "clipped_cores", "--per-condition", "1",
+            "--seed", "0-1", "--workers", "1", "--cache", str(tmp_path / "frames")]
+    first = tmp_path / "first.json"
+    assert bench.main([*args, "--out", str(first)]) == 0
+    saved = json.loads(first.read_text())
+    assert saved["seeds"] == [0, 1] and len(saved["images"]) == 2
+    out = capsys.readouterr().out
+    assert "320x240 seed 0:" in out and "320x240 seed 1:" in out
+    assert bench.main([*args, "--compare", str(first)]) == 0
+    out = capsys.readouterr().out
+    assert f"against {first}:" in out and "0 frames differ: 0 spots found, 0 lost" in out
+    with pytest.raises(SystemExit):
+        bench.main([*args, "--seed", "3-1"])
