@@ -259,7 +259,10 @@ def test_sigma_grows_with_light_that_is_not_point_symmetric() -> None:
     """A clean spot's sigma is the floor; a laser-coloured bar 4-7 px beside each spot pulls
     its centre ~1.5 px and its sigma grows with it (the window's shift, the asymmetry), while
     without those terms it would stay at the floor (the colour term left out: it does not
-    depend on the bar, test_a_centre_read_from_colour_holds_the_colour_term)."""
+    depend on the bar, test_a_centre_read_from_colour_holds_the_colour_term). Measured with
+    the narrower windows off; with them, a spot whose narrow window states a σ half as large
+    is re-centred on the spot, with the distance moved in its σ
+    (tests/test_detection_narrow_window.py)."""
     def spots(bar: float, **kw: float) -> list[tuple[float, float]]:
         kw = {"sigma_chroma_px": 0.0, **kw}
         rng = np.random.default_rng(5)
@@ -276,12 +279,15 @@ def test_sigma_grows_with_light_that_is_not_point_symmetric() -> None:
         e = errors_px(res, truth)
         return [(e[s.laser], s.sigma_px) for s in res.spots]
 
-    clean, pulled = spots(0.0), spots(0.5)
-    flat = spots(0.5, sigma_window_gain=0.0, sigma_asymmetry_gain=0.0)
+    clean, pulled = spots(0.0), spots(0.5, narrow_window_ratio=0.0)
+    flat = spots(0.5, sigma_window_gain=0.0, sigma_asymmetry_gain=0.0, narrow_window_ratio=0.0)
     assert len(clean) == len(pulled) == 4
     assert all(e < 0.1 and 0.1 <= s < 0.11 for e, s in clean)
     assert all(e > 1.0 and s > 0.2 for e, s in pulled)
     assert all(s == pytest.approx(0.1, abs=1e-3) for _, s in flat)
+    narrowed = spots(0.5)  # measured: two of the four re-centred, 0.012 and 0.025 px off
+    assert sum(e < 0.1 for e, _ in narrowed) >= 2
+    assert all((e < 0.1 and s > 0.4) or (e > 1.0 and s > 0.2) for e, s in narrowed)
 
 
 def test_a_centre_read_from_colour_holds_the_colour_term() -> None:

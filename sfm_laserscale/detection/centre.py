@@ -47,7 +47,12 @@ also follow something beside the spot (a texture edge, a neighbour's flank) wher
 centroid's fixed point does not, so it is taken only within ``fit_agree_sigmas`` of the spot's
 σ from the centroid, and the σ stays the centroid's. Clipped cores keep the centroid: a fit to
 their flanks alone was measured less accurate (docs/DETECTION.md, the sixteenth round).
-:func:`centre_chosen` runs both on one crop around the spot.
+
+Last, :func:`narrow_window_centre` refines the spot again under centroid windows narrower than
+its measured radius (NARROW_WINDOWS_PX) and takes the centre whose stated σ is
+``narrow_window_ratio`` times smaller: a radius read on the smoothed response is wider than a
+small spot, and a window that wide weighs the scene beside it, which the σ's structure terms
+show. :func:`centre_chosen` runs the three on one crop around the spot.
 """
 
 from __future__ import annotations
@@ -104,6 +109,9 @@ CLIPPED_CENTROID_MAX_AREAS = 1.0
 CLIPPED_CENTROID_MAX_PIXELS = 60
 #: the clipped region taken is the one with a pixel within this distance of the centre (px)
 CLIPPED_CENTROID_REACH_PX = 1.5
+#: the centroid windows (σ, px) a chosen spot is also refined under, where narrower than its
+#: own (:func:`narrow_window_centre`)
+NARROW_WINDOWS_PX = (2.0, 1.5, 1.0)
 
 Centre = tuple[float, float, float]  # (x, y, σ), px
 
@@ -200,6 +208,41 @@ def clipped_core_centre(clipped: NDArray[np.bool_], guess: SpotGuess, centre: Ce
     return cx, cy, math.hypot(CLIPPED_CENTROID_SIGMA_PX, disagreement_gain * apart)
 
 
+def narrow_window_centre(planes: Planes, guess: SpotGuess, refine: str,
+                         sigma_model: SigmaModel, chosen: Centre, sigma_ratio: float) -> Centre:
+    """A chosen spot's centre (x, y, σ; crop COLMAP px) refined again under each centroid
+    window of NARROW_WINDOWS_PX narrower than its half-maximum radius (``guess.radius_px``),
+    started at ``chosen``: the one whose stated σ is ``sigma_ratio`` times smaller than the
+    best so far (``chosen`` first) replaces it, when it lies within max(2, radius) px of
+    ``chosen``; else ``chosen``. The σ returned gains the disagreement term of the distance
+    moved, as two signals' centres do (:func:`combine_centres`), and is no smaller than
+    ``chosen``'s divided by ``sigma_ratio``, the bound the window was taken by: the smallest
+    of several σ, each read with noise, understates the error of the centre it picks.
+
+    The window is the spot's measured half-maximum radius, which the candidate search reads on
+    a smoothed response: for a small spot it is wider than the light, so the window weights the
+    scene around it, and a gradient or a patch beside the spot pulls the fixed point off it.
+    The σ says so: its structure term is how far a wider window moves the centre and how far
+    the light is from point-symmetric about it. A window on the spot's own scale, whose centre
+    states a much smaller σ, reads the spot and not its surroundings."""
+    best = chosen
+    reach = max(2.0, guess.radius_px)
+    for window_px in NARROW_WINDOWS_PX:
+        if window_px >= guess.radius_px:
+            continue
+        narrow = replace(guess, x=chosen[0], y=chosen[1], radius_px=window_px)
+        x, y, sigma = refine_spot(planes, narrow, refine, sigma_model=sigma_model)
+        if (math.isfinite(sigma) and sigma_ratio * sigma < best[2]
+                and math.hypot(x - chosen[0], y - chosen[1]) <= reach):
+            best = (x, y, sigma)
+    if best is chosen:
+        return chosen
+    moved = math.hypot(best[0] - chosen[0], best[1] - chosen[1])
+    sigma = max(math.hypot(best[2], sigma_model.disagreement_gain * moved),
+                chosen[2] / sigma_ratio)
+    return best[0], best[1], sigma
+
+
 def _local_planes(image_rgb: NDArray[np.uint8], m: Measure,
                   laser_rgb: tuple[float, float, float], options: DetectionOptions,
                   max_radius: float) -> tuple[Planes, SpotGuess, int, int]:
@@ -230,10 +273,12 @@ def _fit_applies(m: Measure, options: DetectionOptions) -> bool:
 
 
 def _centre(image_rgb: NDArray[np.uint8], m: Measure, laser_rgb: tuple[float, float, float],
-            options: DetectionOptions, max_radius: float, both: bool, fit: bool) -> None:
+            options: DetectionOptions, max_radius: float, both: bool, fit: bool,
+            narrow: bool = False) -> None:
     """In place: a chosen spot's centre and σ from :func:`two_signal_centre` (``both``), then
-    :func:`fit_centre` (``fit``), on one crop around it."""
-    if not (both or fit):
+    :func:`fit_centre` (``fit``), then :func:`narrow_window_centre` (``narrow``), on one crop
+    around it."""
+    if not (both or fit or narrow):
         return
     planes, guess, x0, y0 = _local_planes(image_rgb, m, laser_rgb, options, max_radius)
     start = (m.x - x0, m.y - y0, m.sigma_px)
@@ -246,6 +291,9 @@ def _centre(image_rgb: NDArray[np.uint8], m: Measure, laser_rgb: tuple[float, fl
     if fit:
         centre = fit_centre(planes, replace(guess, x=centre[0], y=centre[1]), centre,
                             options.fit_agree_sigmas)
+    if narrow:
+        centre = narrow_window_centre(planes, guess, options.refine, options.sigma_model,
+                                      centre, options.narrow_window_ratio)
     if centre != start:
         m.x, m.y, m.sigma_px = centre[0] + x0, centre[1] + y0, centre[2]
 
@@ -296,6 +344,8 @@ def centre_chosen(image_rgb: NDArray[np.uint8], m: Measure,
                   laser_rgb: tuple[float, float, float], options: DetectionOptions,
                   max_radius: float) -> None:
     """In place: a chosen spot's reported centre and σ: :func:`centre_on_both`, then
-    :func:`polish_with_fit`, on one crop (image COLMAP px)."""
+    :func:`polish_with_fit`, then :func:`narrow_window_centre` (``options.narrow_window_ratio``;
+    not for spots refined beside an overlapping one), on one crop (image COLMAP px)."""
     _centre(image_rgb, m, laser_rgb, options, max_radius,
-            both=_two_signals_apply(m, laser_rgb, options), fit=_fit_applies(m, options))
+            both=_two_signals_apply(m, laser_rgb, options), fit=_fit_applies(m, options),
+            narrow=options.narrow_window_ratio > 0 and not m.beside)

@@ -118,6 +118,10 @@ class DetectionOptions:
       where the centroid's window was too wide for it (``centre.WIDE_WINDOW`` × the fitted σ
       or more) and the fit lies within this many of its σ from the centroid
       (:func:`.centre.fit_centre`; its σ is kept); 0 switches it off.
+    - ``narrow_window_ratio``: a chosen spot (not one refined beside an overlapping one) is
+      refined again under centroid windows narrower than its measured radius (2, 1.5 and 1 px),
+      and takes the centre whose stated σ is this many times smaller than its own
+      (:func:`.centre.narrow_window_centre`); 0 switches it off.
     - ``luma_separation_radii``: a luma-dominant (green) laser's spots are refined with a
       neighbour's light removed (read on the texture-free light alone) only when their centres
       lie within this many half-maximum radii (theirs summed); None: when their refinement
@@ -158,6 +162,7 @@ class DetectionOptions:
     sigma_asymmetry_gain: float = 0.12
     two_signal_centre: bool = True
     fit_agree_sigmas: float = 3.0
+    narrow_window_ratio: float = 2.0
     luma_separation_radii: float | None = 3.0
     sigma_disagreement_gain: float = 0.354
     sigma_chroma_px: float = 0.3
@@ -181,7 +186,8 @@ class DetectionOptions:
             raise InputError(f"refine must be 'centroid' or 'gaussian', got {self.refine!r}")
         for name in ("min_clutter_ratio", "second_look_clutter_ratio", "alone_min_score",
                      "sigma_floor_px", "sigma_window_gain", "sigma_asymmetry_gain",
-                     "sigma_disagreement_gain", "sigma_chroma_px", "fit_agree_sigmas"):
+                     "sigma_disagreement_gain", "sigma_chroma_px", "fit_agree_sigmas",
+                     "narrow_window_ratio"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("snr_half", "clutter_half", "colour_tau"):
@@ -189,6 +195,9 @@ class DetectionOptions:
                 raise InputError(f"{name} must be positive, got {getattr(self, name)}")
         if not self.spot_sigmas_px or min(self.spot_sigmas_px) <= 0:
             raise InputError("spot_sigmas_px must be positive")
+        if 0 < self.narrow_window_ratio < 1:
+            raise InputError(f"narrow_window_ratio must be 0 (off) or at least 1, got "
+                             f"{self.narrow_window_ratio}")
         if self.floor_min_spots < 2:
             raise InputError(f"floor_min_spots must be >= 2, got {self.floor_min_spots}")
         for name in ("band_px", "max_spot_radius_px", "floor_radius_px",
