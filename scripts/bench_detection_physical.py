@@ -42,6 +42,7 @@ lost or moved and the false spots gained or dropped.
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import json
 import math
@@ -99,6 +100,7 @@ def jobs_for(conditions: Sequence[str], sizes: Sequence[tuple[int, int]], per_co
             for c in conditions for si, (w, h) in enumerate(sizes) for i in range(per_condition)]
 
 
+@functools.lru_cache(maxsize=1)
 def generator_version() -> str:
     """A hash (12 hex digits) of the generator's source files: frames cached under another
     hash came from other code."""
