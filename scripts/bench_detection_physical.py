@@ -122,19 +122,18 @@ def cache_path(job: Job) -> Path:
 def cached_frame(job: Job) -> Frame:
     """``job``'s frame: rendered, or read back from ``job.cache`` where an earlier run kept it
     (pickle: the files are this benchmark's own, written below)."""
-    if job.cache is None:
-        return render_frame(job.condition, job.width, job.height, job.rng(), job.laser_free)
-    path = cache_path(job)
-    if path.exists():
+    path = None if job.cache is None else cache_path(job)
+    if path is not None and path.exists():
         with path.open("rb") as f:
-            frame: Frame = pickle.load(f)
-        return frame
+            cached: Frame = pickle.load(f)
+        return cached
     frame = render_frame(job.condition, job.width, job.height, job.rng(), job.laser_free)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_suffix(f".{multiprocessing.current_process().pid}.part")
-    with partial.open("wb") as f:
-        pickle.dump(frame, f, protocol=pickle.HIGHEST_PROTOCOL)
-    partial.replace(path)  # whole files only, also when two runs share the folder
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        partial = path.with_suffix(f".{multiprocessing.current_process().pid}.part")
+        with partial.open("wb") as f:
+            pickle.dump(frame, f, protocol=pickle.HIGHEST_PROTOCOL)
+        partial.replace(path)  # whole files only, also when two runs share the folder
     return frame
 
 
