@@ -248,7 +248,9 @@ def _refined(planes: Planes, m: Measure, options: DetectionOptions,
     window that wide wanders off the spot. Where the radius of the image's other spots is known
     (``spot_radius_px``, a search near a predicted point) and smaller, such a maximum is refined
     again at that radius, and takes it: the spots of one scaler on one floor are footprints of
-    like beams at like ranges.
+    like beams at like ranges. So is one ``options.wide_maximum_ratio`` times wider than that
+    radius or more whose own window's centre lies beyond max(2, that radius) px of it
+    (:func:`_wandered`), where the narrower refinement holds.
     """
     def attempt(radius: float, support: float) -> tuple[float, float, float] | None:
         guess = SpotGuess(m.x, m.y, radius, support, m.bright)
@@ -257,13 +259,26 @@ def _refined(planes: Planes, m: Measure, options: DetectionOptions,
         return (x, y, sig) if ok else None
 
     refined = attempt(m.radius_px, m.support_px)
-    if refined is not None or spot_radius_px is None or spot_radius_px >= m.radius_px:
+    if spot_radius_px is None or spot_radius_px >= m.radius_px:
+        return refined
+    if refined is not None and not _wandered(m, refined, spot_radius_px, options):
         return refined
     support = expected_support_px(spot_radius_px)
-    refined = attempt(spot_radius_px, support)
-    if refined is not None:
-        m.radius_px, m.support_px = spot_radius_px, support
-    return refined
+    again = attempt(spot_radius_px, support)
+    if again is None:
+        return refined
+    m.radius_px, m.support_px = spot_radius_px, support
+    return again
+
+
+def _wandered(m: Measure, centre: tuple[float, float, float], spot_radius_px: float,
+              options: DetectionOptions) -> bool:
+    """Whether a maximum ``options.wide_maximum_ratio`` × the other spots' radius wide or more
+    was centred beyond max(2, that radius) px of itself: its window centroids its surroundings
+    (a red patch 10 px off, green water's bright texture), not a spot of the others' size."""
+    ratio = options.wide_maximum_ratio
+    moved = math.hypot(centre[0] - m.x, centre[1] - m.y)
+    return ratio > 0 and m.radius_px >= ratio * spot_radius_px and moved > max(2.0, spot_radius_px)
 
 
 def candidates_for_colour(

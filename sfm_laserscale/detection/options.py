@@ -122,6 +122,11 @@ class DetectionOptions:
       refined again under centroid windows narrower than its measured radius (2, 1.5 and 1 px),
       and takes the centre whose stated σ is this many times smaller than its own
       (:func:`.centre.narrow_window_centre`); 0 switches it off.
+    - ``wide_maximum_ratio``: near a predicted point (the floor search), a maximum whose
+      half-maximum radius is this many times the image's other spots' median radius or more,
+      and whose own centroid window centres it beyond max(2 px, that radius) from itself, is
+      refined at that radius, and takes that centre where it holds
+      (:func:`.candidates._refined`); 0 switches it off.
     - ``luma_separation_radii``: a luma-dominant (green) laser's spots are refined with a
       neighbour's light removed (read on the texture-free light alone) only when their centres
       lie within this many half-maximum radii (theirs summed); None: when their refinement
@@ -163,6 +168,7 @@ class DetectionOptions:
     two_signal_centre: bool = True
     fit_agree_sigmas: float = 3.0
     narrow_window_ratio: float = 2.0
+    wide_maximum_ratio: float = 2.0
     luma_separation_radii: float | None = 3.0
     sigma_disagreement_gain: float = 0.354
     sigma_chroma_px: float = 0.3
@@ -187,7 +193,7 @@ class DetectionOptions:
         for name in ("min_clutter_ratio", "second_look_clutter_ratio", "alone_min_score",
                      "sigma_floor_px", "sigma_window_gain", "sigma_asymmetry_gain",
                      "sigma_disagreement_gain", "sigma_chroma_px", "fit_agree_sigmas",
-                     "narrow_window_ratio"):
+                     "narrow_window_ratio", "wide_maximum_ratio"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("snr_half", "clutter_half", "colour_tau"):
@@ -195,9 +201,10 @@ class DetectionOptions:
                 raise InputError(f"{name} must be positive, got {getattr(self, name)}")
         if not self.spot_sigmas_px or min(self.spot_sigmas_px) <= 0:
             raise InputError("spot_sigmas_px must be positive")
-        if 0 < self.narrow_window_ratio < 1:
-            raise InputError(f"narrow_window_ratio must be 0 (off) or at least 1, got "
-                             f"{self.narrow_window_ratio}")
+        for name in ("narrow_window_ratio", "wide_maximum_ratio"):
+            if 0 < getattr(self, name) < 1:
+                raise InputError(f"{name} must be 0 (off) or at least 1, got "
+                                 f"{getattr(self, name)}")
         if self.floor_min_spots < 2:
             raise InputError(f"floor_min_spots must be >= 2, got {self.floor_min_spots}")
         for name in ("band_px", "max_spot_radius_px", "floor_radius_px",
