@@ -4,7 +4,8 @@
 responses (:mod:`.response`), candidates measured, refined and scored (:mod:`.candidates`,
 :mod:`.shape`, :mod:`.refine`, :mod:`.score`), the assignment to lasers (:mod:`.assign`), the
 search where the plane through the spots found meets a missing laser's beam (:mod:`.floor`),
-a lone spot's stricter test (:func:`_drop_alone`), in an image where nothing was chosen the
+the other beams searched where a floor through a lone spot puts them (:mod:`.lone`), a lone
+spot's stricter test (:func:`_drop_alone`), in an image where nothing was chosen the
 floor through two whitened cores (:func:`_pair_on_floor`), the chosen spots' centres from both
 of a green laser's signals (:mod:`.centre`) and the reasons for lasers without a spot
 (:mod:`.explain`). Every candidate is returned with what became of it.
@@ -32,6 +33,7 @@ from sfm_laserscale.detection.explain import explain_missing
 from sfm_laserscale.detection.floor import PLACE, floor_search
 from sfm_laserscale.detection.inputs import check_image, colours_needed, group_rgb
 from sfm_laserscale.detection.joint import NOTHING_BESIDE, PAIR_FLOOR_SPOTS, Choice
+from sfm_laserscale.detection.lone import LONE_PLACE, LONE_TILT_DEG, lone_floor_search
 from sfm_laserscale.detection.options import Candidate, DetectionOptions, DetectionResult
 from sfm_laserscale.detection.response import crop_channels
 from sfm_laserscale.memory import trim_heap
@@ -145,12 +147,36 @@ def _pair_on_floor(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
     return {}
 
 
+def _lone_floor(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region: SearchRegion,
+                valid: list[Measure], chosen: dict[str, int], options: DetectionOptions
+                ) -> tuple[dict[str, Measure], str]:
+    """In place (``chosen``, ``valid``): with one spot chosen, the spots found where a floor
+    through it puts the other beams' (:mod:`.lone`), taken when ``options.lone_floor_spots``
+    beams or more hold one, then the floor search through all. Returns the spots taken and,
+    when too few were found, what the lone spot's reason adds."""
+    if len(chosen) != 1 or options.lone_floor_spots == 0 or not options.floor_search:
+        return {}, ""
+    (name, j), = chosen.items()
+    found = lone_floor_search(image_rgb, camera, rig, region, name, valid[j], options)
+    if len(found) < options.lone_floor_spots:
+        return {}, (f"; a floor through it, tilted up to {LONE_TILT_DEG:g}°, holds {len(found)} "
+                    f"of the {options.lone_floor_spots} other lasers' spots it needs")
+    place = LONE_PLACE.format(laser=name)
+    for laser, (m, score) in found.items():
+        m.score, m.laser, m.reason = score, laser, f"assigned to {laser}: {place}"
+        valid.append(m)
+        chosen[laser] = len(valid) - 1
+    more, _ = _floor_round(image_rgb, camera, rig, region, valid, chosen, options)
+    return {laser: m for laser, (m, _) in found.items()} | more, ""
+
+
 def _drop_alone(rig: Rig, valid: list[Measure], chosen: dict[str, int], unseen: dict[str, str],
-                options: DetectionOptions) -> None:
+                options: DetectionOptions, why_lone: str = "") -> None:
     """In place (``chosen``): a spot alone in its image (the only laser's spot, with two or more
     other calibrated beams in view; ``unseen``: lasers whose beam is outside the image) is
-    dropped when it scores below ``options.alone_min_score``: nothing corroborates it. The
-    reasons of whitened cores judged beside it (``Measure.not_rescued``) say so."""
+    dropped when it scores below ``options.alone_min_score``: nothing corroborates it
+    (``why_lone``: what the lone spot's floor search adds to its reason). The reasons of
+    whitened cores judged beside it (``Measure.not_rescued``) say so."""
     in_view = [las for las in rig.lasers if las.calibrated and las.name not in unseen]
     if len(chosen) != 1 or len(in_view) < 3:
         return
@@ -161,7 +187,7 @@ def _drop_alone(rig: Rig, valid: list[Measure], chosen: dict[str, int], unseen: 
     m.laser = None
     m.reason = (f"alone in its image: score {m.score:.2f} < alone_min_score "
                 f"{options.alone_min_score:g} (no other laser's spot, {len(in_view) - 1} other "
-                "beams in view)")
+                f"beams in view){why_lone}")
     del chosen[name]
     for other in valid:  # cores judged beside it by the joint choice (joint.why_not_rescued)
         for laser, why in other.not_rescued.items():
@@ -183,7 +209,9 @@ def detect_spots(
     chosen, missing, dist, pairs = assign_calibrated(rig, region, valid, options)
     on_floor, floor_why = _floor_then_second_look(image_rgb, camera, rig, region, measures,
                                                   valid, chosen, options)
-    _drop_alone(rig, valid, chosen, missing, options)
+    lone, why_lone = _lone_floor(image_rgb, camera, rig, region, valid, chosen, options)
+    on_floor |= lone
+    _drop_alone(rig, valid, chosen, missing, options, why_lone)
     on_floor |= _pair_on_floor(image_rgb, camera, rig, region, measures, valid, chosen, dist,
                                pairs, options)
     for name in chosen:

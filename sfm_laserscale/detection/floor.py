@@ -94,7 +94,7 @@ def beam_range_on_plane(origin_m: F64, direction: F64, centre_m: F64, normal: F6
     return range_m if range_m > 0 else None
 
 
-def _projected(camera: Camera, point_m: F64) -> tuple[float, float] | None:
+def project_inside(camera: Camera, point_m: F64) -> tuple[float, float] | None:
     """COLMAP (x, y) of a camera-frame point, or None outside the image."""
     xy = camera.project(point_m[None])[0]
     if np.all(np.isfinite(xy)) and 0 <= xy[0] <= camera.width and 0 <= xy[1] <= camera.height:
@@ -122,7 +122,7 @@ def floor_predictions(camera: Camera, rig: Rig, region: SearchRegion,
         r = beam_range_on_plane(origin, direction, *plane)
         if r is None or not range_m[0] <= r <= range_m[1]:
             continue
-        if (xy := _projected(camera, origin + r * direction)) is not None:
+        if (xy := project_inside(camera, origin + r * direction)) is not None:
             predicted[las.name] = xy
     return predicted
 

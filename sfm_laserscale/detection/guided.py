@@ -32,7 +32,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from sfm_laserscale.detection.beams import SearchRegion, default_max_spot_radius_px
+from sfm_laserscale.detection.beams import (
+    SearchRegion,
+    default_max_spot_radius_px,
+    distance_to_polyline,
+)
 from sfm_laserscale.detection.candidates import Measure, candidates_for_colour
 from sfm_laserscale.detection.centre import centre_chosen
 from sfm_laserscale.detection.inputs import check_image, group_rgb
@@ -42,6 +46,8 @@ from sfm_laserscale.detection.response import CHANNELS, crop_channels
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.model import Camera, Spot
 from sfm_laserscale.rig import Rig
+
+F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -85,11 +91,12 @@ class GuidedResult:
     missing: dict[str, str]
 
 
-def _window(camera: Camera, xy: tuple[float, float], reach: int) -> tuple[int, int, int, int]:
-    """(x0, y0, x1, y1) array-index window of half-size ``reach`` around a COLMAP point."""
-    col, row = int(math.floor(xy[0])), int(math.floor(xy[1]))
-    return (max(0, col - reach), max(0, row - reach), min(camera.width, col + reach + 1),
-            min(camera.height, row + reach + 1))
+def _window(camera: Camera, where: F64, reach: int) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) array-index window ``reach`` px beyond the (K, 2) COLMAP points'
+    bounding box."""
+    lo, hi = np.floor(where.min(axis=0)).astype(int), np.floor(where.max(axis=0)).astype(int)
+    return (max(0, int(lo[0]) - reach), max(0, int(lo[1]) - reach),
+            min(camera.width, int(hi[0]) + reach + 1), min(camera.height, int(hi[1]) + reach + 1))
 
 
 def _max_radius(camera: Camera, options: DetectionOptions) -> float:
@@ -97,15 +104,16 @@ def _max_radius(camera: Camera, options: DetectionOptions) -> float:
     return options.max_spot_radius_px or default_max_spot_radius_px(camera.width, camera.height)
 
 
-def _region(camera: Camera, xy: tuple[float, float], radius: float, max_radius: float,
+def _region(camera: Camera, where: F64, radius: float, max_radius: float,
             options: DetectionOptions, spot_radius_px: float | None) -> SearchRegion:
-    """The image searched around a prediction: maxima within ``radius`` (+1 px) of it."""
+    """The image searched around a point or segment ((K, 2) COLMAP px): maxima within
+    ``radius`` (+1 px) of it."""
     reach = int(math.ceil(radius + 2.0 * max_radius + 4.0 * max(options.spot_sigmas_px) + 8.0))
-    roi = _window(camera, xy, reach)
+    roi = _window(camera, where, reach)
     x0, y0, x1, y1 = roi
-    cols = np.arange(x0, x1) + 0.5
-    rows = np.arange(y0, y1) + 0.5
-    near = np.hypot(cols[None, :] - xy[0], rows[:, None] - xy[1]) <= radius + 1.0
+    cols, rows = np.meshgrid(np.arange(x0, x1) + 0.5, np.arange(y0, y1) + 0.5)
+    pixels = np.stack([cols.ravel(), rows.ravel()], axis=1)
+    near = distance_to_polyline(pixels, where).reshape(cols.shape) <= radius + 1.0
     return SearchRegion(roi, {}, {}, near, radius, max_radius, spot_radius_px)
 
 
@@ -127,21 +135,29 @@ def evidence(m: Measure, colour_floor: float) -> float:
 MODEL_PLACE = "where the model puts its spot"
 
 
-def _best(measures: list[Measure], xy: tuple[float, float], guided: GuidedOptions, place: str
+def _best(measures: list[Measure], where: F64, guided: GuidedOptions, place: str
           ) -> tuple[Measure | None, str]:
-    """The highest-evidence valid candidate within ``guided.radius_px`` of ``xy``, or why there
-    is none (``place`` names the point, e.g. "where the model puts its spot")."""
+    """The highest-evidence valid candidate within ``guided.radius_px`` of the point or segment
+    ``where`` ((K, 2) COLMAP px), or why there is none (``place`` names it, e.g. "where the
+    model puts its spot")."""
     radius = guided.radius_px
-    near = [m for m in measures if math.hypot(m.x - xy[0], m.y - xy[1]) <= radius]
-    valid = [m for m in near if m.rejected is None]
+    dist = distance_to_polyline(np.array([[m.x, m.y] for m in measures]).reshape(-1, 2), where)
+    near = [(d, m) for d, m in zip(dist, measures, strict=True) if d <= radius]
+    valid = [m for _, m in near if m.rejected is None]
     if valid:
         return max(valid, key=lambda m: evidence(m, guided.colour_floor)), ""
     if not near:
         return None, (f"no local maximum of its light within {radius:.1f} px of "
-                      f"({xy[0]:.1f}, {xy[1]:.1f}), {place}")
-    closest = min(near, key=lambda m: math.hypot(m.x - xy[0], m.y - xy[1]))
+                      f"{_named(where)}, {place}")
+    closest = min(near, key=lambda dm: dm[0])[1]
     return None, (f"the maximum at ({closest.x:.1f}, {closest.y:.1f}), near {place}, is "
                   f"{closest.rejected}")
+
+
+def _named(where: F64) -> str:
+    """A point, or a segment by its ends, in words (COLMAP px)."""
+    ends = [f"({x:.1f}, {y:.1f})" for x, y in (where[0], where[-1])]
+    return ends[0] if len(where) == 1 else f"the segment from {ends[0]} to {ends[1]}"
 
 
 def search_near(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, laser: str,
@@ -152,11 +168,20 @@ def search_near(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, laser: s
     and its evidence, or (None, 0, why not); ``place`` names the point in the reasons,
     ``spot_radius_px`` the half-max radius of the image's other spots when known (a maximum
     whose refinement fails at its own radius is refined again at it, :mod:`.candidates`)."""
-    las = rig.laser(laser)
-    max_radius = _max_radius(camera, options)
     if not (0 <= xy[0] <= camera.width and 0 <= xy[1] <= camera.height):
         return None, 0.0, f"({xy[0]:.1f}, {xy[1]:.1f}), {place}, is outside the image"
-    region = _region(camera, xy, guided.radius_px, max_radius, options, spot_radius_px)
+    return search_along(image_rgb, camera, rig, laser, np.array([xy], dtype=np.float64),
+                        options, guided, place, spot_radius_px)
+
+
+def search_along(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, laser: str,
+                 where: F64, options: DetectionOptions, guided: GuidedOptions, place: str,
+                 spot_radius_px: float | None = None) -> tuple[Measure | None, float, str]:
+    """As :func:`search_near`, within ``guided.radius_px`` of a point or segment ``where``
+    ((K, 2) COLMAP px inside the image)."""
+    las = rig.laser(laser)
+    max_radius = _max_radius(camera, options)
+    region = _region(camera, where, guided.radius_px, max_radius, options, spot_radius_px)
     ungated = replace(options, min_clutter_ratio=0.0, second_look_clutter_ratio=0.0,
                       min_snr=options.min_snr if guided.min_snr is None else guided.min_snr)
     channels = crop_channels(image_rgb, region.roi, options.input_gamma)
@@ -164,7 +189,7 @@ def search_near(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, laser: s
     measures = [m for c in colours
                 for m in candidates_for_colour(channels, c, ungated, region, group_rgb(rig, c),
                                                guided.maxima_sigmas)]
-    best, why = _best(measures, xy, guided, place)
+    best, why = _best(measures, where, guided, place)
     if best is None:
         return None, 0.0, why
     score = evidence(best, guided.colour_floor)

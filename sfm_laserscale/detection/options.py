@@ -122,6 +122,11 @@ class DetectionOptions:
       refined again under centroid windows narrower than its measured radius (2, 1.5 and 1 px),
       and takes the centre whose stated σ is this many times smaller than its own
       (:func:`.centre.narrow_window_centre`); 0 switches it off.
+    - ``lone_floor_spots``: with one laser's spot found, the other beams are searched where a
+      floor through it puts them (:mod:`.lone`), and the spots found there are taken when this
+      many beams or more hold one (then the floor search through all of them); 0 switches it
+      off. ``lone_floor_reach_px``: the part of each beam's segment searched, each side of
+      where a floor facing the camera puts the spot (None: 5 floor-search radii).
     - ``wide_maximum_ratio``: near a predicted point (the floor search), a maximum whose
       half-maximum radius is this many times the image's other spots' median radius or more,
       and whose own centroid window centres it beyond max(2 px, that radius) from itself, is
@@ -169,6 +174,8 @@ class DetectionOptions:
     fit_agree_sigmas: float = 3.0
     narrow_window_ratio: float = 2.0
     wide_maximum_ratio: float = 2.0
+    lone_floor_spots: int = 2
+    lone_floor_reach_px: float | None = None
     luma_separation_radii: float | None = 3.0
     sigma_disagreement_gain: float = 0.354
     sigma_chroma_px: float = 0.3
@@ -205,9 +212,11 @@ class DetectionOptions:
             if 0 < getattr(self, name) < 1:
                 raise InputError(f"{name} must be 0 (off) or at least 1, got "
                                  f"{getattr(self, name)}")
+        if self.lone_floor_spots < 0:
+            raise InputError(f"lone_floor_spots must be >= 0, got {self.lone_floor_spots}")
         if self.floor_min_spots < 2:
             raise InputError(f"floor_min_spots must be >= 2, got {self.floor_min_spots}")
-        for name in ("band_px", "max_spot_radius_px", "floor_radius_px",
+        for name in ("band_px", "max_spot_radius_px", "floor_radius_px", "lone_floor_reach_px",
                      "luma_separation_radii", "floor_weak_min_snr"):
             value = getattr(self, name)
             if value is not None and value <= 0:
