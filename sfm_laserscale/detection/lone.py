@@ -33,8 +33,11 @@ LONE_TILT_DEG = 40.0
 #: the part of a segment searched by default: this many floor-search radii each side of the
 #: point where the floor facing the camera puts the spot (15.5 px at 1920 × 1080)
 LONE_REACH_RADII = 5.0
-#: ranges sampled along a beam's segment
+#: ranges sampled along a beam's segment, and the vertices kept of its part searched (the
+#: image of a beam is nearly straight over tens of pixels; fewer vertices keep the distance
+#: map of the search window small)
 _SAMPLES = 400
+_VERTICES = 16
 #: the colour term counts as measured along a segment (the floor's point counts it at least
 #: 0.5): tens of pixels of a beam's image hold the scene's own pale blobs
 LONE_COLOUR_FLOOR = 0.0
@@ -95,7 +98,11 @@ def _segment(camera: Camera, point_m: F64, origin_m: F64, direction: F64,
     inside = (np.all(np.isfinite(xy), axis=1) & (xy[:, 0] >= 0) & (xy[:, 0] <= camera.width)
               & (xy[:, 1] >= 0) & (xy[:, 1] <= camera.height)
               & (np.hypot(*(xy - centre).T) <= reach_px))
-    return np.asarray(xy[inside], dtype=np.float64) if inside.sum() >= 2 else None
+    if inside.sum() < 2:
+        return None
+    kept = xy[inside]
+    vertices = np.unique(np.linspace(0, len(kept) - 1, min(len(kept), _VERTICES)).round())
+    return np.asarray(kept[vertices.astype(int)], dtype=np.float64)
 
 
 def lone_floor_search(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
