@@ -94,7 +94,7 @@ def beam_range_on_plane(origin_m: F64, direction: F64, centre_m: F64, normal: F6
     return range_m if range_m > 0 else None
 
 
-def project_inside(camera: Camera, point_m: F64) -> tuple[float, float] | None:
+def _projected(camera: Camera, point_m: F64) -> tuple[float, float] | None:
     """COLMAP (x, y) of a camera-frame point, or None outside the image."""
     xy = camera.project(point_m[None])[0]
     if np.all(np.isfinite(xy)) and 0 <= xy[0] <= camera.width and 0 <= xy[1] <= camera.height:
@@ -122,7 +122,7 @@ def floor_predictions(camera: Camera, rig: Rig, region: SearchRegion,
         r = beam_range_on_plane(origin, direction, *plane)
         if r is None or not range_m[0] <= r <= range_m[1]:
             continue
-        if (xy := project_inside(camera, origin + r * direction)) is not None:
+        if (xy := _projected(camera, origin + r * direction)) is not None:
             predicted[las.name] = xy
     return predicted
 
@@ -142,6 +142,12 @@ def default_floor_radius_px(width: int, height: int) -> float:
     return RADIUS_PER_DIAGONAL * math.hypot(width, height)
 
 
+def floor_radius_px(camera: Camera, options: DetectionOptions) -> float:
+    """The floor search's radius (px) in this camera's images: ``options.floor_radius_px`` or
+    the default."""
+    return options.floor_radius_px or default_floor_radius_px(camera.width, camera.height)
+
+
 def floor_search(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region: SearchRegion,
                  spots_px: Mapping[str, tuple[float, float]], options: DetectionOptions,
                  spot_radius_px: float | None = None) -> dict[str, FloorFind]:
@@ -152,7 +158,7 @@ def floor_search(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region:
         return {}
     predicted = floor_predictions(camera, rig, region, spots_px, options.floor_min_spots,
                                   (options.min_range_m, options.max_range_m))
-    radius = options.floor_radius_px or default_floor_radius_px(camera.width, camera.height)
+    radius = floor_radius_px(camera, options)
     return {name: _search(image_rgb, camera, rig, name, xy, options, radius, spot_radius_px)
             for name, xy in predicted.items()}
 

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from sfm_laserscale.detection.beams import SearchRegion
 from sfm_laserscale.detection.candidates import Measure
-from sfm_laserscale.detection.floor import default_floor_radius_px, spot_points_m
+from sfm_laserscale.detection.floor import floor_radius_px, spot_points_m
 from sfm_laserscale.detection.guided import GuidedOptions, search_along
 from sfm_laserscale.detection.options import DetectionOptions
 from sfm_laserscale.model import Camera
@@ -69,8 +69,7 @@ def lone_segments(camera: Camera, rig: Rig, region: SearchRegion, name: str,
     point = spot_points_m({name: xy}, rig, region).get(name)
     if point is None:
         return {}
-    reach = options.lone_floor_reach_px or LONE_REACH_RADII * (
-        options.floor_radius_px or default_floor_radius_px(camera.width, camera.height))
+    reach = options.lone_floor_reach_px or LONE_REACH_RADII * floor_radius_px(camera, options)
     out = {}
     for las in rig.lasers:
         if las.name == name or las.origin is None or las.direction is None:
@@ -110,8 +109,8 @@ def lone_floor_search(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
                       options: DetectionOptions) -> dict[str, tuple[Measure, float]]:
     """Laser -> (candidate, evidence) found on each other beam's segment where a floor through
     the lone spot ``lone`` (laser ``name``) puts its spot (:func:`lone_segments`)."""
-    radius = options.floor_radius_px or default_floor_radius_px(camera.width, camera.height)
-    guided = GuidedOptions(radius_px=radius, colour_floor=LONE_COLOUR_FLOOR)
+    guided = GuidedOptions(radius_px=floor_radius_px(camera, options),
+                           colour_floor=LONE_COLOUR_FLOOR)
     place = LONE_PLACE.format(laser=name)
     found = {}
     for laser, segment in lone_segments(camera, rig, region, name, (lone.x, lone.y),
