@@ -260,9 +260,11 @@ def test_sigma_grows_with_light_that_is_not_point_symmetric() -> None:
     its centre ~1.5 px and its sigma grows with it (the window's shift, the asymmetry), while
     without those terms it would stay at the floor (the colour term left out: it does not
     depend on the bar, test_a_centre_read_from_colour_holds_the_colour_term). Measured with
-    the narrower windows off; with them, a spot whose narrow window states a σ half as large
-    is re-centred on the spot, with the distance moved in its σ
-    (tests/test_detection_narrow_window.py)."""
+    the narrower windows and the crosstalk centre off; with the narrower windows, a spot whose
+    narrow window states a σ half as large is re-centred on the spot, with the distance moved
+    in its σ (tests/test_detection_narrow_window.py). The spots' red channel clips, and the bar
+    lies in red alone: read on green and blue (the crosstalk centre, on by default), every
+    core is re-centred within 0.35 px (tests/test_detection_crosstalk.py)."""
     def spots(bar: float, **kw: float) -> list[tuple[float, float]]:
         kw = {"sigma_chroma_px": 0.0, **kw}
         rng = np.random.default_rng(5)
@@ -279,15 +281,19 @@ def test_sigma_grows_with_light_that_is_not_point_symmetric() -> None:
         e = errors_px(res, truth)
         return [(e[s.laser], s.sigma_px) for s in res.spots]
 
-    clean, pulled = spots(0.0), spots(0.5, narrow_window_ratio=0.0)
-    flat = spots(0.5, sigma_window_gain=0.0, sigma_asymmetry_gain=0.0, narrow_window_ratio=0.0)
+    clean, pulled = spots(0.0), spots(0.5, narrow_window_ratio=0.0, crosstalk_max_noise_px=0.0)
+    flat = spots(0.5, sigma_window_gain=0.0, sigma_asymmetry_gain=0.0, narrow_window_ratio=0.0,
+                 crosstalk_max_noise_px=0.0)
     assert len(clean) == len(pulled) == 4
     assert all(e < 0.1 and 0.1 <= s < 0.11 for e, s in clean)
     assert all(e > 1.0 and s > 0.2 for e, s in pulled)
     assert all(s == pytest.approx(0.1, abs=1e-3) for _, s in flat)
-    narrowed = spots(0.5)  # measured: two of the four re-centred, 0.012 and 0.025 px off
+    # measured: two of the four re-centred, 0.012 and 0.025 px off
+    narrowed = spots(0.5, crosstalk_max_noise_px=0.0)
     assert sum(e < 0.1 for e, _ in narrowed) >= 2
     assert all((e < 0.1 and s > 0.4) or (e > 1.0 and s > 0.2) for e, s in narrowed)
+    # measured: 0.02-0.30 px off, σ 0.109-0.119 px
+    assert all(e < 0.35 and s < 0.15 for e, s in spots(0.5))
 
 
 def test_a_centre_read_from_colour_holds_the_colour_term() -> None:
@@ -302,8 +308,11 @@ def test_a_centre_read_from_colour_holds_the_colour_term() -> None:
         paint_spot(img, (float(xy[0]), float(xy[1])), "red", sigma_px=sigma, peak=2.0)
     img += rng.normal(0, 0.01, img.shape).astype(np.float32)
     image = to_uint8(img)
-    plain = detect_spots(image, PINHOLE, rig, DetectionOptions(sigma_chroma_px=0.0))
-    res = detect_spots(image, PINHOLE, rig)
+    # the crosstalk centre off: it reads no colour difference (no chroma term) and would take
+    # some of these clipped cores
+    plain = detect_spots(image, PINHOLE, rig,
+                         DetectionOptions(sigma_chroma_px=0.0, crosstalk_max_noise_px=0.0))
+    res = detect_spots(image, PINHOLE, rig, DetectionOptions(crosstalk_max_noise_px=0.0))
     assert len(res.spots) == len(plain.spots) == 4
     for s, p in zip(res.spots, plain.spots, strict=True):
         (c,) = [c for c in res.candidates if (c.x, c.y) == (s.x, s.y)]

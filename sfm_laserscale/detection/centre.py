@@ -48,11 +48,24 @@ centroid's fixed point does not, so it is taken only within ``fit_agree_sigmas``
 σ from the centroid, and the σ stays the centroid's. Clipped cores keep the centroid: a fit to
 their flanks alone was measured less accurate (docs/DETECTION.md, the sixteenth round).
 
-Last, :func:`narrow_window_centre` refines the spot again under centroid windows narrower than
+Then :func:`narrow_window_centre` refines the spot again under centroid windows narrower than
 its measured radius (NARROW_WINDOWS_PX) and takes the centre whose stated σ is
 ``narrow_window_ratio`` times smaller: a radius read on the smoothed response is wider than a
 small spot, and a window that wide weighs the scene beside it, which the σ's structure terms
-show. :func:`centre_chosen` runs the three on one crop around the spot.
+show.
+
+Last, :func:`crosstalk_centre` reads a red or blue laser's clipped core on a fourth signal: the
+channels other than its laser's (:func:`.refine.crosstalk_value`). A laser many times white
+clips its own channel over its core and often over its halo and glow too, where the
+texture-free light is undetermined and luma holds the clipped channel's halo, so neither has
+the core's shape; the sensor's spectral crosstalk puts a few per cent of the light in the other
+channels, where the core stands far above the noise and the halo barely shows. The centre is
+taken where its noise σ is at most ``crosstalk_max_noise_px`` (a core that bright), it lies
+within max(3 px, CROSSTALK_REACH_RADII half-maximum radii) of the centre so far, and its stated
+σ is the smaller (its structure terms hold the scene's texture in those channels). A green
+laser's cores keep theirs: its crosstalk channels are red and blue, where green water's
+texture and the 4:2:0 chroma weigh more (measured in docs/DETECTION.md, the thirty-second
+round). :func:`centre_chosen` runs these steps on one crop around the spot.
 """
 
 from __future__ import annotations
@@ -70,8 +83,10 @@ from sfm_laserscale.detection.refine import (
     SpotGuess,
     gaussian_fit,
     luma_dominant,
+    refine_centroid,
     refine_spot,
     spot_patch,
+    structure_sigma,
     window,
 )
 from sfm_laserscale.detection.response import Planes, crop_channels, make_planes
@@ -112,6 +127,10 @@ CLIPPED_CENTROID_REACH_PX = 1.5
 #: the centroid windows (σ, px) a chosen spot is also refined under, where narrower than its
 #: own (:func:`narrow_window_centre`)
 NARROW_WINDOWS_PX = (2.0, 1.5, 1.0)
+#: a clipped core's crosstalk centre lies within max(CROSSTALK_REACH_PX, this many half-maximum
+#: radii) of the centre so far (:func:`crosstalk_centre`)
+CROSSTALK_REACH_RADII = 1.5
+CROSSTALK_REACH_PX = 3.0
 
 Centre = tuple[float, float, float]  # (x, y, σ), px
 
@@ -243,6 +262,31 @@ def narrow_window_centre(planes: Planes, guess: SpotGuess, refine: str,
     return best[0], best[1], sigma
 
 
+def crosstalk_centre(planes: Planes, guess: SpotGuess, sigma_model: SigmaModel,
+                     chosen: Centre, max_noise_px: float) -> Centre:
+    """A red or blue laser's clipped core's centre (x, y, σ; crop COLMAP px) read on the
+    channels other than its laser's (:func:`.refine.crosstalk_value`), started at ``chosen``:
+    taken where the centroid's noise σ is at most ``max_noise_px``, it lies within
+    max(CROSSTALK_REACH_PX, CROSSTALK_REACH_RADII · radius) of ``chosen`` and its σ is
+    smaller than ``chosen``'s; else ``chosen``. Its σ: the noise, the structure terms and the
+    floor, as :func:`.refine.refine_spot` states them (no chroma term: the crosstalk is read
+    at full resolution in each channel); the structure terms hold the scene's texture in the
+    other channels (blue water's, under a red core), which a small noise σ does not show."""
+    start = replace(guess, x=chosen[0], y=chosen[1])
+    patch = spot_patch(planes, start, guess.patch_support, signal="crosstalk")
+    if patch is None:
+        return chosen
+    sigma_w = max(1.0, guess.radius_px)
+    x, y, noise = refine_centroid(patch, start.x, start.y, sigma_w)
+    reach = max(CROSSTALK_REACH_PX, CROSSTALK_REACH_RADII * guess.radius_px)
+    if not (math.isfinite(noise) and noise <= max_noise_px
+            and math.hypot(x - chosen[0], y - chosen[1]) <= reach):
+        return chosen
+    sigma = math.hypot(noise, structure_sigma(patch, x, y, sigma_w, sigma_model),
+                       sigma_model.floor_px)
+    return (x, y, sigma) if sigma < chosen[2] else chosen
+
+
 def _local_planes(image_rgb: NDArray[np.uint8], m: Measure,
                   laser_rgb: tuple[float, float, float], options: DetectionOptions,
                   max_radius: float) -> tuple[Planes, SpotGuess, int, int]:
@@ -272,13 +316,21 @@ def _fit_applies(m: Measure, options: DetectionOptions) -> bool:
             and not m.beside)
 
 
+def _crosstalk_applies(m: Measure, laser_rgb: tuple[float, float, float],
+                       options: DetectionOptions) -> bool:
+    """Whether :func:`crosstalk_centre` may move this chosen spot: a red or blue laser's
+    clipped core (``m.bright``), also one refined beside an overlapping spot."""
+    return (options.crosstalk_max_noise_px > 0 and m.bright
+            and not luma_dominant(np.asarray(laser_rgb)))
+
+
 def _centre(image_rgb: NDArray[np.uint8], m: Measure, laser_rgb: tuple[float, float, float],
             options: DetectionOptions, max_radius: float, both: bool, fit: bool,
-            narrow: bool = False) -> None:
+            narrow: bool = False, crosstalk: bool = False) -> None:
     """In place: a chosen spot's centre and σ from :func:`two_signal_centre` (``both``), then
-    :func:`fit_centre` (``fit``), then :func:`narrow_window_centre` (``narrow``), on one crop
-    around it."""
-    if not (both or fit or narrow):
+    :func:`fit_centre` (``fit``), then :func:`narrow_window_centre` (``narrow``), then
+    :func:`crosstalk_centre` (``crosstalk``), on one crop around it."""
+    if not (both or fit or narrow or crosstalk):
         return
     planes, guess, x0, y0 = _local_planes(image_rgb, m, laser_rgb, options, max_radius)
     start = (m.x - x0, m.y - y0, m.sigma_px)
@@ -294,6 +346,9 @@ def _centre(image_rgb: NDArray[np.uint8], m: Measure, laser_rgb: tuple[float, fl
     if narrow:
         centre = narrow_window_centre(planes, guess, options.refine, options.sigma_model,
                                       centre, options.narrow_window_ratio)
+    if crosstalk:
+        centre = crosstalk_centre(planes, guess, options.sigma_model, centre,
+                                  options.crosstalk_max_noise_px)
     if centre != start:
         m.x, m.y, m.sigma_px = centre[0] + x0, centre[1] + y0, centre[2]
 
@@ -345,7 +400,10 @@ def centre_chosen(image_rgb: NDArray[np.uint8], m: Measure,
                   max_radius: float) -> None:
     """In place: a chosen spot's reported centre and σ: :func:`centre_on_both`, then
     :func:`polish_with_fit`, then :func:`narrow_window_centre` (``options.narrow_window_ratio``;
-    not for spots refined beside an overlapping one), on one crop (image COLMAP px)."""
+    not for spots refined beside an overlapping one), then :func:`crosstalk_centre` (a red or
+    blue laser's clipped core, ``options.crosstalk_max_noise_px``), on one crop (image COLMAP
+    px)."""
     _centre(image_rgb, m, laser_rgb, options, max_radius,
             both=_two_signals_apply(m, laser_rgb, options), fit=_fit_applies(m, options),
-            narrow=options.narrow_window_ratio > 0 and not m.beside)
+            narrow=options.narrow_window_ratio > 0 and not m.beside,
+            crosstalk=_crosstalk_applies(m, laser_rgb, options))

@@ -122,6 +122,11 @@ class DetectionOptions:
       refined again under centroid windows narrower than its measured radius (2, 1.5 and 1 px),
       and takes the centre whose stated σ is this many times smaller than its own
       (:func:`.centre.narrow_window_centre`); 0 switches it off.
+    - ``crosstalk_max_noise_px``: a red or blue laser's chosen clipped core is centred again
+      on the channels other than its laser's (the sensor's crosstalk), and takes that centre
+      where its noise σ is at most this (px), it lies within max(3 px, 1.5 half-maximum
+      radii) of the centre it had and its stated σ is smaller than that centre's
+      (:func:`.centre.crosstalk_centre`); 0 switches it off.
     - ``lone_floor_spots``: with one laser's spot found, the other beams are searched where a
       floor through it puts them (:mod:`.lone`), and the spots found there are taken when this
       many beams or more hold one (then the floor search through all of them); 0 switches it
@@ -174,6 +179,7 @@ class DetectionOptions:
     fit_agree_sigmas: float = 3.0
     narrow_window_ratio: float = 2.0
     wide_maximum_ratio: float = 2.0
+    crosstalk_max_noise_px: float = 0.05
     lone_floor_spots: int = 2
     lone_floor_reach_px: float | None = None
     luma_separation_radii: float | None = 3.0
@@ -200,7 +206,7 @@ class DetectionOptions:
         for name in ("min_clutter_ratio", "second_look_clutter_ratio", "alone_min_score",
                      "sigma_floor_px", "sigma_window_gain", "sigma_asymmetry_gain",
                      "sigma_disagreement_gain", "sigma_chroma_px", "fit_agree_sigmas",
-                     "narrow_window_ratio", "wide_maximum_ratio"):
+                     "narrow_window_ratio", "wide_maximum_ratio", "crosstalk_max_noise_px"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("snr_half", "clutter_half", "colour_tau"):

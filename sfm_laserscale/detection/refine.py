@@ -160,8 +160,9 @@ LUMA_SNR_RATIO = 0.5
 CLIPPED_CUT = 0.15
 
 
-#: the signals a spot can be refined on: chosen by SNR, the texture-free light, luma
-SIGNALS = ("auto", "light", "luma")
+#: the signals a spot can be refined on: chosen by SNR, the texture-free light, luma, the
+#: channels other than the laser's (:func:`crosstalk_value`)
+SIGNALS = ("auto", "light", "luma", "crosstalk")
 
 
 def _snr(sig: F64, ring: NDArray[np.bool_], inner: NDArray[np.bool_]) -> float:
@@ -204,6 +205,20 @@ def spot_light(rgb: F64, clipped: NDArray[np.bool_], laser_rgb: F64, texture: F6
     return out, undetermined
 
 
+def crosstalk_value(rgb: F64, clipped: NDArray[np.bool_], laser_rgb: F64
+                    ) -> tuple[F64, NDArray[np.bool_]]:
+    """(h, w) sum of the linear channels other than the laser's (its brightest in
+    ``laser_rgb``), and where one of them clips.
+
+    A laser many times white clips its own channel over its core and often over its halo and
+    glow as well, where the texture-free light and luma (which holds the clipped channel's
+    halo) have no shape left; the sensor's spectral crosstalk puts a few per cent of its light
+    in the other channels, so there the core alone still stands out, far above the noise,
+    while the halo adds little."""
+    others = [k for k in range(3) if k != int(np.argmax(laser_rgb))]
+    return rgb[..., others].sum(axis=2), np.asarray(clipped[..., others].any(axis=2))
+
+
 def _projection(laser: F64, texture: F64) -> F64 | None:
     """Weights measuring laser light in unit response, blind to the texture colour (None when
     the two colours coincide)."""
@@ -231,7 +246,9 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
     texture-free signal's (texture strong in luma, e.g. green water, keeps the latter).
     ``signal`` (one of SIGNALS): "auto" chooses so (a red or blue laser's spot: the
     texture-free light); "light" and "luma" force that signal on a spot without neighbours,
-    of any laser (:mod:`.centre` weighs a red or blue clipped core's luma against its light).
+    of any laser (:mod:`.centre` weighs a red or blue clipped core's luma against its light);
+    "crosstalk" reads the channels other than the laser's (:func:`crosstalk_value`; a
+    clipped core's, :func:`.centre.crosstalk_centre`).
     ``texture``: the texture colour the light is freed of (None: the ring's,
     :func:`texture_direction`); a second capture of the same place is read with the same
     weights by giving it the first patch's ``texture``.
@@ -252,11 +269,14 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
     inner = rr < support_px
     if texture is None:
         texture = texture_direction(rgb[ring], planes.laser_rgb)
-    value, undetermined = spot_light(rgb, clipped3, planes.laser_rgb, texture)
+    if signal == "crosstalk":
+        value, undetermined = crosstalk_value(rgb, clipped3, planes.laser_rgb)
+    else:
+        value, undetermined = spot_light(rgb, clipped3, planes.laser_rgb, texture)
     for nb in neighbours:
         value = value - nb.at(gx, gy)
     sig = _plane_residual(value, gx, gy, ring)
-    from_colour = True
+    from_colour = signal != "crosstalk"
     green = luma_dominant(planes.laser_rgb)
     if allow_luma and not neighbours and (signal == "luma" or (green and signal == "auto")):
         sig_l = _plane_residual(rgb @ LUMA, gx, gy, ring)
