@@ -81,12 +81,12 @@ from sfm_laserscale.detection.candidates import Measure
 from sfm_laserscale.detection.options import DetectionOptions, SigmaModel
 from sfm_laserscale.detection.refine import (
     SpotGuess,
+    centroid_sigma,
     gaussian_fit,
     luma_dominant,
     refine_centroid,
     refine_spot,
     spot_patch,
-    structure_sigma,
     window,
 )
 from sfm_laserscale.detection.response import Planes, crop_channels, make_planes
@@ -282,8 +282,7 @@ def crosstalk_centre(planes: Planes, guess: SpotGuess, sigma_model: SigmaModel,
     if not (math.isfinite(noise) and noise <= max_noise_px
             and math.hypot(x - chosen[0], y - chosen[1]) <= reach):
         return chosen
-    sigma = math.hypot(noise, structure_sigma(patch, x, y, sigma_w, sigma_model),
-                       sigma_model.floor_px)
+    sigma = centroid_sigma(patch, x, y, noise, sigma_w, sigma_model, guess.radius_px)
     return (x, y, sigma) if sigma < chosen[2] else chosen
 
 

@@ -267,11 +267,11 @@ def spot_patch(planes: Planes, guess: SpotGuess, support_px: float,
     if ring.sum() < 8:
         return None
     inner = rr < support_px
-    if texture is None:
-        texture = texture_direction(rgb[ring], planes.laser_rgb)
-    if signal == "crosstalk":
+    if signal == "crosstalk":  # the other channels: no texture colour to free them of
         value, undetermined = crosstalk_value(rgb, clipped3, planes.laser_rgb)
     else:
+        if texture is None:
+            texture = texture_direction(rgb[ring], planes.laser_rgb)
         value, undetermined = spot_light(rgb, clipped3, planes.laser_rgb, texture)
     for nb in neighbours:
         value = value - nb.at(gx, gy)
@@ -507,8 +507,7 @@ def refine_spot(planes: Planes, guess: SpotGuess, refine: str,
     patch = spot_patch(planes, guess, guess.patch_support, neighbours, signal=signal)
     if patch is None:
         return math.nan, math.nan, math.nan
-    floor = math.hypot(sigma_model.floor_px,
-                       sigma_model.chroma(guess.radius_px) if patch.from_colour else 0.0)
+    floor = floor_sigma(patch, sigma_model, guess.radius_px)
     if refine == "gaussian" or patch.cut:
         # a spot cut by the image border: a centroid would be pulled inwards, a symmetric
         # model fitted to the visible pixels is not (and has no wide-window term: the wider
@@ -518,7 +517,22 @@ def refine_spot(planes: Planes, guess: SpotGuess, refine: str,
     x, y, sig = refine_centroid(patch, guess.x, guess.y, sigma_w)
     if not math.isfinite(sig):
         return x, y, sig
-    return x, y, math.hypot(sig, structure_sigma(patch, x, y, sigma_w, sigma_model), floor)
+    return x, y, centroid_sigma(patch, x, y, sig, sigma_w, sigma_model, guess.radius_px)
+
+
+def floor_sigma(patch: SpotPatch, sigma_model: SigmaModel, radius_px: float) -> float:
+    """The σ floor (px) of a centre read on ``patch``: the model's floor and, for the
+    texture-free light (a colour difference), the colour term of a spot of ``radius_px``."""
+    return math.hypot(sigma_model.floor_px,
+                      sigma_model.chroma(radius_px) if patch.from_colour else 0.0)
+
+
+def centroid_sigma(patch: SpotPatch, x: float, y: float, noise: float, sigma_w: float,
+                   sigma_model: SigmaModel, radius_px: float) -> float:
+    """The stated σ (px) of a centroid (x, y) of ``patch`` under a window ``sigma_w``: its
+    ``noise`` σ, the structure terms (:func:`structure_sigma`) and :func:`floor_sigma`."""
+    return math.hypot(noise, structure_sigma(patch, x, y, sigma_w, sigma_model),
+                      floor_sigma(patch, sigma_model, radius_px))
 
 
 def asymmetry(patch: SpotPatch, x: float, y: float, radius_px: float) -> float:
