@@ -10,6 +10,7 @@ import tomllib
 import numpy as np
 import pytest
 
+import sfm_laserscale.detection.detect as detect_module
 from sfm_laserscale.commands.detect import parse_camera
 from sfm_laserscale.detection import DetectionOptions, assign, detect_spots
 from sfm_laserscale.detection.assign import WHITENED_AT_RANGE
@@ -153,7 +154,7 @@ def test_a_whitened_core_at_the_other_spots_range_is_taken_on_a_second_look(
     4:2:0 chroma, crosstalk), so its colour term says scene, and it is not taken by the joint
     choice. The other three spots are found; on its beam's line at their range the second look
     takes it (both were missed before). Beside fewer chosen spots than
-    ``WHITENED_LOOK_SPOTS`` it is not taken."""
+    ``WHITENED_LOOK_SPOTS`` (and with no core taken near the floor's point) it is not taken."""
     ci = list(CONDITIONS).index(condition)
     frame = render_frame(condition, 1920, 1080, np.random.default_rng([0, ci, 0, index]))
     camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
@@ -166,5 +167,6 @@ def test_a_whitened_core_at_the_other_spots_range_is_taken_on_a_second_look(
     assert WHITENED_AT_RANGE in taken.reason, taken.reason
     assert dict(taken.evidence)["colour"] == CLIPPED_COLOUR
     monkeypatch.setattr(assign, "WHITENED_LOOK_SPOTS", 4)
+    monkeypatch.setattr(detect_module, "WHITENED_FLOOR_SPOTS", 4)  # nor near the floor's point
     before = detect_spots(frame.image_rgb, camera, rig)
     assert name not in {s.laser for s in before.spots} and name in before.missing

@@ -6,15 +6,17 @@ is the candidate's evidence (:mod:`.score`), ``depth`` (below) and the agreement
 with the other lasers' spots; the spots are chosen jointly (:mod:`.joint`) and a laser whose
 best candidate scores below ``min_score`` gets none; a laser still without a spot then takes a
 laser-coloured maximum held back by the clutter gate at the range of the other spots, or a
-whitened clipped core on its beam's line there (:func:`second_look`). An uncalibrated laser
-takes the best free candidate of its colour when no other laser shares that colour. A laser
-without a spot is explained by the best candidates in its band, each with its score and the
-test it failed or its weakest evidence.
+whitened clipped core on its beam's line there (:func:`second_look`), or one a few pixels
+from where the floor through three of them puts its spot (:func:`whitened_at_floor`). An
+uncalibrated laser takes the best free candidate of its colour when no other laser shares
+that colour. A laser without a spot is explained by the best candidates in its band, each
+with its score and the test it failed or its weakest evidence.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 from numpy.typing import NDArray
@@ -51,6 +53,17 @@ CLUTTER_AT_RANGE = 1.0
 #: chosen spots needed before the second look takes a whitened clipped core: one spot's range
 #: is weak backing (a glint on a band's line agrees with a lone false spot in laser-free frames)
 WHITENED_LOOK_SPOTS = 2
+#: chosen spots the floor must stand on before a whitened clipped core near its point is taken
+#: (:func:`whitened_at_floor`): three spots give a plane, two only its least tilted guess
+WHITENED_FLOOR_SPOTS = 3
+#: how far from the floor's point such a core may lie, in floor search radii: the rig's
+#: calibration error puts the point a median 2.7 px from the spot at 1920 × 1080, 41 % of
+#: them beyond the search's 3.1 px (docs/DETECTION.md, "The twenty-fifth round")
+WHITENED_FLOOR_REACH = 1.5
+#: … and from its beam's image, as a share of ``band_px`` (a true core's is up to 0.26 there)
+WHITENED_FLOOR_BEAM = 0.3
+#: where such a core lies, in its reason
+AT_FLOOR = "{d:.1f} px from where the floor through the other lasers' spots puts it"
 
 
 def beam_term(dist_px: F64, band_px: float) -> F64:
@@ -329,8 +342,10 @@ def _whitened_at_range(dist_px: float, range_m: float, ref_m: float, band_px: fl
     return core_on_line_at(dist_px / band_px, range_m, ref_m)
 
 
-def _take_second_look(m: Measure, name: str, value: float, beam: float) -> None:
-    """In place: a second-look maximum becomes laser ``name``'s spot (``beam``: its term)."""
+def _take_second_look(m: Measure, name: str, value: float, beam: float,
+                      where: str = "at the range of the other lasers' spots") -> None:
+    """In place: a second-look maximum becomes laser ``name``'s spot (``beam``: its term;
+    ``where``: what placed it, in words)."""
     gated = m.rejected is not None
     m.terms["clutter"] = CLUTTER_AT_RANGE
     m.range_fit[name] = 1.0
@@ -340,8 +355,58 @@ def _take_second_look(m: Measure, name: str, value: float, beam: float) -> None:
     m.rejected, m.laser, m.score = None, name, value
     strength = ("below the clutter gate" if gated else "its clutter term waived")
     m.reason = (f"assigned to {name}: {strength} ({m.clutter_ratio:.2f} × clutter level), "
-                f"{WHITENED_AT_RANGE if m.whitened else 'laser-coloured'}, at the range of the "
-                "other lasers' spots")
+                f"{WHITENED_AT_RANGE if m.whitened else 'laser-coloured'}, {where}")
+
+
+def whitened_at_floor(rig: Rig, region: SearchRegion, measures: list[Measure],
+                      valid: list[Measure], chosen: dict[str, int],
+                      predicted_px: Mapping[str, tuple[float, float]], reach_px: float,
+                      options: DetectionOptions) -> dict[str, int]:
+    """Calibrated lasers still without a spot take the whitened clipped core nearest the point
+    where the floor through the chosen spots puts theirs (``predicted_px``: laser -> COLMAP
+    (x, y)), within ``reach_px`` of it and WHITENED_FLOOR_BEAM × ``band_px`` of its beam's image,
+    scored as the second look scores one (clutter term waived, colour CLIPPED_COLOUR) when that
+    reaches ``min_score``. Taken cores are appended to ``valid``; returns laser name -> index."""
+    free = set(range(len(valid))) - set(chosen.values())
+    pool = [m for m in measures if m.second_look and m.whitened]
+    pool += [valid[j] for j in sorted(free) if valid[j].whitened]
+    index = {id(m): j for j, m in enumerate(valid)}
+    taken: dict[str, int] = {}
+    for name, (px, py) in predicted_px.items():
+        las = rig.laser(name)
+        if name in chosen or not las.calibrated:
+            continue
+        near = sorted((math.hypot(m.x - px, m.y - py), k) for k, m in enumerate(pool)
+                      if las.color in ("any", pool[k].color))
+        for d_px, k in near:
+            if d_px > reach_px:
+                break
+            if (vb := _core_at_floor(pool[k], name, region, options))[0] > 0.0:
+                m = pool.pop(k)
+                _take_second_look(m, name, *vb, where=AT_FLOOR.format(d=d_px))
+                if id(m) not in index:
+                    valid.append(m)
+                    index[id(m)] = len(valid) - 1
+                taken[name] = index[id(m)]
+                break
+    return taken
+
+
+def _core_at_floor(m: Measure, name: str, region: SearchRegion, options: DetectionOptions
+                   ) -> tuple[float, float]:
+    """(score, beam term) of a whitened clipped core near the floor's point for a laser; score
+    0 when it lies beyond WHITENED_FLOOR_BEAM × ``band_px`` of its beam's image or scores below
+    ``min_score``."""
+    line = region.polylines[name]
+    if len(line) == 0:
+        return 0.0, 0.0
+    dist = float(distance_to_polyline(np.array([[m.x, m.y]]), line)[0])
+    if dist > WHITENED_FLOOR_BEAM * region.band_px:
+        return 0.0, 0.0
+    terms = {**m.terms, "clutter": CLUTTER_AT_RANGE, "colour": CLIPPED_COLOUR}
+    beam = float(beam_term(np.array([dist]), region.band_px)[0])
+    value = float(np.prod(list(terms.values()))) * beam * m.depth.get(name, 1.0)
+    return (value, beam) if value >= options.min_score else (0.0, 0.0)
 
 
 def assign_uncalibrated(

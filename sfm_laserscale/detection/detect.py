@@ -20,17 +20,25 @@ from numpy.typing import NDArray
 
 from sfm_laserscale.detection.assign import (
     RESCUED_PAIR,
+    WHITENED_FLOOR_REACH,
+    WHITENED_FLOOR_SPOTS,
     assign_calibrated,
     assign_uncalibrated,
     explain_unused,
     second_look,
     take_choice,
+    whitened_at_floor,
 )
 from sfm_laserscale.detection.beams import SearchRegion, search_region
 from sfm_laserscale.detection.candidates import Measure, candidates_for_colour
 from sfm_laserscale.detection.centre import centre_chosen
 from sfm_laserscale.detection.explain import explain_missing
-from sfm_laserscale.detection.floor import PLACE, floor_search
+from sfm_laserscale.detection.floor import (
+    PLACE,
+    floor_predictions,
+    floor_radius_px,
+    floor_search,
+)
 from sfm_laserscale.detection.inputs import check_image, colours_needed, group_rgb
 from sfm_laserscale.detection.joint import NOTHING_BESIDE, PAIR_FLOOR_SPOTS, Choice
 from sfm_laserscale.detection.lone import LONE_PLACE, LONE_TILT_DEG, lone_floor_search
@@ -93,16 +101,34 @@ def _floor_then_second_look(image_rgb: NDArray[np.uint8], camera: Camera, rig: R
                             ) -> tuple[dict[str, Measure], dict[str, str]]:
     """In place (``chosen``, ``valid``): lasers without a spot searched where the floor through
     the chosen spots puts them (:mod:`.floor`, a few pixels), then along their bands at the
-    chosen spots' range (:func:`.assign.second_look`), then on the floor again when that took
-    a spot. Returns the floor's spots and, for the lasers it searched in vain, what it saw."""
+    chosen spots' range (:func:`.assign.second_look`), then for a whitened clipped core near
+    the floor's point (:func:`_whitened_on_floor`), then on the floor again when those took a
+    spot. Returns the floor's spots and, for the lasers it searched in vain, what it saw."""
     on_floor, why = _floor_round(image_rgb, camera, rig, region, valid, chosen, options)
     looked = second_look(rig, region, measures, valid, chosen, options)
     chosen.update(looked)
-    if looked:
+    cores = _whitened_on_floor(camera, rig, region, measures, valid, chosen, options)
+    chosen.update(cores)
+    if looked or cores:
         more, why_more = _floor_round(image_rgb, camera, rig, region, valid, chosen, options)
         on_floor |= more
         why |= why_more
     return on_floor, why
+
+
+def _whitened_on_floor(camera: Camera, rig: Rig, region: SearchRegion, measures: list[Measure],
+                       valid: list[Measure], chosen: dict[str, int], options: DetectionOptions
+                       ) -> dict[str, int]:
+    """Lasers still without a spot, where the floor through WHITENED_FLOOR_SPOTS chosen spots
+    or more puts theirs, take a whitened clipped core within WHITENED_FLOOR_REACH floor search
+    radii of that point (:func:`.assign.whitened_at_floor`); laser -> index into ``valid``."""
+    if not options.floor_search:
+        return {}
+    spots_px = {name: (valid[j].x, valid[j].y) for name, j in chosen.items()}
+    predicted = floor_predictions(camera, rig, region, spots_px, WHITENED_FLOOR_SPOTS,
+                                  (options.min_range_m, options.max_range_m))
+    reach = WHITENED_FLOOR_REACH * floor_radius_px(camera, options)
+    return whitened_at_floor(rig, region, measures, valid, chosen, predicted, reach, options)
 
 
 #: what a whitened core's reason adds when the floor through it and another held too few spots
