@@ -329,11 +329,19 @@ def _second_look_value(m: Measure, name: str, region: SearchRegion, ref_m: float
     if not (_whitened_at_range(dist, range_m, ref_m, region.band_px) if m.whitened
             else dist <= region.band_px and agrees(range_m, ref_m)):
         return 0.0, 0.0
-    terms = {**m.terms, "clutter": CLUTTER_AT_RANGE,
-             "colour": CLIPPED_COLOUR if m.whitened else m.colour.term}
-    beam = float(beam_term(np.array([dist]), region.band_px)[0])
+    colour = CLIPPED_COLOUR if m.whitened else m.colour.term
+    return _waived_value(m, name, colour, dist, region.band_px, options.min_score)
+
+
+def _waived_value(m: Measure, name: str, colour: float, dist_px: float, band_px: float,
+                  min_score: float) -> tuple[float, float]:
+    """(score, beam term) for a laser of a candidate ``dist_px`` from its beam's image, taken
+    with its clutter term waived (CLUTTER_AT_RANGE) and colour term ``colour``; score 0 below
+    ``min_score``."""
+    terms = {**m.terms, "clutter": CLUTTER_AT_RANGE, "colour": colour}
+    beam = float(beam_term(np.array([dist_px]), band_px)[0])
     value = float(np.prod(list(terms.values()))) * beam * m.depth.get(name, 1.0)
-    return (value, beam) if value >= options.min_score else (0.0, 0.0)
+    return (value, beam) if value >= min_score else (0.0, 0.0)
 
 
 def _whitened_at_range(dist_px: float, range_m: float, ref_m: float, band_px: float) -> bool:
@@ -377,7 +385,7 @@ def whitened_at_floor(rig: Rig, region: SearchRegion, measures: list[Measure],
         if name in chosen or not las.calibrated:
             continue
         near = sorted((math.hypot(m.x - px, m.y - py), k) for k, m in enumerate(pool)
-                      if las.color in ("any", pool[k].color))
+                      if las.color in ("any", m.color))
         for d_px, k in near:
             if d_px > reach_px:
                 break
@@ -403,10 +411,7 @@ def _core_at_floor(m: Measure, name: str, region: SearchRegion, options: Detecti
     dist = float(distance_to_polyline(np.array([[m.x, m.y]]), line)[0])
     if dist > WHITENED_FLOOR_BEAM * region.band_px:
         return 0.0, 0.0
-    terms = {**m.terms, "clutter": CLUTTER_AT_RANGE, "colour": CLIPPED_COLOUR}
-    beam = float(beam_term(np.array([dist]), region.band_px)[0])
-    value = float(np.prod(list(terms.values()))) * beam * m.depth.get(name, 1.0)
-    return (value, beam) if value >= options.min_score else (0.0, 0.0)
+    return _waived_value(m, name, CLIPPED_COLOUR, dist, region.band_px, options.min_score)
 
 
 def assign_uncalibrated(
