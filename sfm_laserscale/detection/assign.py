@@ -298,12 +298,19 @@ def second_look(rig: Rig, region: SearchRegion, measures: list[Measure], valid: 
         if fits:
             (value, beam), m = max(fits, key=lambda f: f[0][0])
             _take_second_look(m, las.name, value, beam)
-            if id(m) not in index:
-                valid.append(m)
-                index[id(m)] = len(valid) - 1
-            taken[las.name] = index[id(m)]
+            taken[las.name] = _in_valid(m, valid, index)
             pool.remove(m)
     return taken
+
+
+def _in_valid(m: Measure, valid: list[Measure], index: dict[int, int]) -> int:
+    """In place (``valid``, ``index``: id of each measure -> its index in ``valid``): ``m``'s
+    index in ``valid``, appended there first when it is not in it (a maximum held back by the
+    clutter gate)."""
+    if id(m) not in index:
+        valid.append(m)
+        index[id(m)] = len(valid) - 1
+    return index[id(m)]
 
 
 def _chosen_range(region: SearchRegion, valid: list[Measure], chosen: dict[str, int]
@@ -392,10 +399,7 @@ def whitened_at_floor(rig: Rig, region: SearchRegion, measures: list[Measure],
             if (vb := _core_at_floor(pool[k], name, region, options))[0] > 0.0:
                 m = pool.pop(k)
                 _take_second_look(m, name, *vb, where=AT_FLOOR.format(d=d_px))
-                if id(m) not in index:
-                    valid.append(m)
-                    index[id(m)] = len(valid) - 1
-                taken[name] = index[id(m)]
+                taken[name] = _in_valid(m, valid, index)
                 break
     return taken
 

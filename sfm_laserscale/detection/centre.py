@@ -276,7 +276,7 @@ def crosstalk_centre(planes: Planes, guess: SpotGuess, sigma_model: SigmaModel,
     patch = spot_patch(planes, start, guess.patch_support, signal="crosstalk")
     if patch is None:
         return chosen
-    sigma_w = max(1.0, guess.radius_px)
+    sigma_w = guess.window_px
     x, y, noise = refine_centroid(patch, start.x, start.y, sigma_w)
     reach = max(CROSSTALK_REACH_PX, CROSSTALK_REACH_RADII * guess.radius_px)
     if not (math.isfinite(noise) and noise <= max_noise_px
@@ -375,7 +375,7 @@ def fit_centre(planes: Planes, guess: SpotGuess, chosen: Centre, agree_sigmas: f
     patch = spot_patch(planes, guess, guess.patch_support)
     if patch is None or patch.cut:
         return chosen
-    window_px = max(1.0, guess.radius_px)  # the centroid's window σ (refine_spot)
+    window_px = guess.window_px  # the centroid's window σ (refine_spot)
     fit = gaussian_fit(patch, chosen[0], chosen[1], window_px)
     if (fit is None or WIDE_WINDOW * fit[3] > window_px
             or math.hypot(fit[0] - chosen[0], fit[1] - chosen[1]) > agree_sigmas * chosen[2]):

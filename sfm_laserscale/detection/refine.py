@@ -74,9 +74,14 @@ class SpotGuess:
     bright: bool = False
 
     @property
+    def window_px(self) -> float:
+        """σ (px) of the centroid's Gaussian window: the half-max radius, at least 1 px."""
+        return max(1.0, self.radius_px)
+
+    @property
     def patch_support(self) -> float:
         """Support radius of the refinement window (at least 3 half-max radii)."""
-        return max(self.support_px, 3.0 * max(1.0, self.radius_px))
+        return max(self.support_px, 3.0 * self.window_px)
 
 
 @dataclass(frozen=True)
@@ -503,7 +508,7 @@ def refine_spot(planes: Planes, guess: SpotGuess, refine: str,
     """Sub-pixel centre and localisation sigma (:class:`SigmaModel`) of one candidate (crop
     COLMAP px); NaN if impossible. ``refine``: "centroid" or "gaussian" (spots cut by the
     border: always); ``signal``: see :func:`spot_patch`."""
-    sigma_w = max(1.0, guess.radius_px)
+    sigma_w = guess.window_px
     patch = spot_patch(planes, guess, guess.patch_support, neighbours, signal=signal)
     if patch is None:
         return math.nan, math.nan, math.nan
