@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 from dataclasses import replace
 
@@ -12,6 +13,7 @@ import pytest
 
 from sfm_laserscale.commands.detect import parse_camera
 from sfm_laserscale.detection import DetectionOptions, detect_spots
+from sfm_laserscale.detection.score import below
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.rig import rig_from_dict
 from sfm_laserscale.synthetic.underwater import CONDITIONS, render_frame
@@ -32,6 +34,28 @@ def test_a_clear_spot_alone_is_kept_and_a_weaker_one_is_dropped_with_its_reason(
     assert "alone in its image" in strict.missing["L1"]
     dropped = [c for c in strict.candidates if c.reason.startswith("alone in its image")]
     assert len(dropped) == 1 and dropped[0].laser is None
+
+
+def test_a_reason_reads_a_score_below_its_limit() -> None:
+    """A score just under alone_min_score is written with the digits that show it below."""
+    truth = _spots((0.1, -0.1, 1.0), 2.5)
+    image = _image(truth, {"L2": 0.0, "L3": 0.0, "L4": 0.0}, np.random.default_rng(3))
+    score = detect_spots(image, CAMERA, _rig()).spots[0].score
+    limit = score + 1e-4
+    strict = detect_spots(image, CAMERA, _rig(), DetectionOptions(alone_min_score=limit))
+    found = re.search(r"alone in its image: score ([\d.]+) < alone_min_score ([\d.]+)",
+                      strict.missing["L1"])
+    assert found is not None
+    assert float(found.group(1)) < float(found.group(2))
+    assert float(found.group(1)) == pytest.approx(score, abs=0.005)
+
+
+@pytest.mark.parametrize(("value", "limit", "text"), [
+    (0.598, 0.6, "0.598"), (0.12, 0.25, "0.12"), (0.24996, 0.25, "0.24996"),
+    (0.2499999, 0.25, "0.250000")])
+def test_below_keeps_the_digits_a_comparison_needs(value: float, limit: float,
+                                                   text: str) -> None:
+    assert below(value, limit) == text
 
 
 def test_a_two_laser_rig_keeps_its_lone_spot() -> None:

@@ -39,7 +39,7 @@ from sfm_laserscale.detection.joint import (
     why_not_rescued,
 )
 from sfm_laserscale.detection.options import DetectionOptions
-from sfm_laserscale.detection.score import describe_weakest
+from sfm_laserscale.detection.score import below, describe_weakest
 from sfm_laserscale.rig import Rig
 
 F64 = NDArray[np.float64]
@@ -440,7 +440,8 @@ def assign_uncalibrated(
         m = valid[j]
         if scores[j] < options.min_score:
             missing[las.name] = (f"best {las.color_label} candidate ({m.x:.1f}, {m.y:.1f}) "
-                                 f"scores {scores[j]:.2f} < min_score {options.min_score:g}: "
+                                 f"scores {below(scores[j], options.min_score)} < min_score "
+                                 f"{options.min_score:g}: "
                                  f"{why_weak(m, 1.0)}")
             m.reason = f"score below min_score for {las.name}"
             continue

@@ -44,6 +44,7 @@ from sfm_laserscale.detection.joint import NOTHING_BESIDE, PAIR_FLOOR_SPOTS, Cho
 from sfm_laserscale.detection.lone import LONE_PLACE, LONE_TILT_DEG, lone_floor_search
 from sfm_laserscale.detection.options import Candidate, DetectionOptions, DetectionResult
 from sfm_laserscale.detection.response import crop_channels
+from sfm_laserscale.detection.score import below
 from sfm_laserscale.memory import trim_heap
 from sfm_laserscale.model import Camera, Spot
 from sfm_laserscale.rig import Rig
@@ -211,9 +212,9 @@ def _drop_alone(rig: Rig, valid: list[Measure], chosen: dict[str, int], unseen: 
     if m.score >= options.alone_min_score:
         return
     m.laser = None
-    m.reason = (f"alone in its image: score {m.score:.2f} < alone_min_score "
-                f"{options.alone_min_score:g} (no other laser's spot, {len(in_view) - 1} other "
-                f"beams in view){why_lone}")
+    m.reason = (f"alone in its image: score {below(m.score, options.alone_min_score)} < "
+                f"alone_min_score {options.alone_min_score:g} (no other laser's spot, "
+                f"{len(in_view) - 1} other beams in view){why_lone}")
     del chosen[name]
     for other in valid:  # cores judged beside it by the joint choice (joint.why_not_rescued)
         for laser, why in other.not_rescued.items():

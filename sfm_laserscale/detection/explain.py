@@ -18,6 +18,7 @@ from sfm_laserscale.detection.assign import UNREADABLE_CORE, beam_term, evidence
 from sfm_laserscale.detection.beams import SearchRegion, distance_to_polyline
 from sfm_laserscale.detection.candidates import Measure
 from sfm_laserscale.detection.options import DetectionOptions
+from sfm_laserscale.detection.score import below
 from sfm_laserscale.rig import Laser, Rig
 
 F64 = NDArray[np.float64]
@@ -38,7 +39,8 @@ def _line(m: Measure, las: Laser, d: float, band: float, options: DetectionOptio
         why = (f"{UNREADABLE_CORE}, not taken at the laser's colour: "
                f"{m.not_rescued[las.name]}" if las.name in m.not_rescued
                else why_weak(m, beam, las.name))
-        return f"{where} score {score:.2f} < min_score {options.min_score:g}: {why}"
+        return (f"{where} score {below(score, options.min_score)} < min_score "
+                f"{options.min_score:g}: {why}")
     return f"{where} score {score:.2f}: {m.reason}"
 
 

@@ -43,6 +43,7 @@ from sfm_laserscale.detection.inputs import check_image, group_rgb
 from sfm_laserscale.detection.joint import CLIPPED_COLOUR
 from sfm_laserscale.detection.options import DetectionOptions
 from sfm_laserscale.detection.response import CHANNELS, crop_channels
+from sfm_laserscale.detection.score import below
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.model import Camera, Spot
 from sfm_laserscale.rig import Rig
@@ -195,7 +196,7 @@ def search_along(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, laser: 
     score = evidence(best, guided.colour_floor)
     if score < guided.min_score:
         return None, 0.0, (f"the best candidate near {place}, at ({best.x:.1f}, {best.y:.1f}), "
-                           f"scores {score:.2f} < {guided.min_score:g}")
+                           f"scores {below(score, guided.min_score)} < {guided.min_score:g}")
     best.evidence = evidence_terms(best, guided.colour_floor)
     return best, score, ""
 

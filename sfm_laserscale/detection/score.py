@@ -212,6 +212,16 @@ def clutter_term(ratio: float, half: float) -> float:
     return ratio * ratio / (ratio * ratio + half * half)
 
 
+def below(value: float, limit: float) -> str:
+    """``value`` in two decimals, or in as many more (up to six) as it takes to read below
+    ``limit``: a score of 0.598 against 0.6 reads "0.598", not "0.60"."""
+    for digits in (2, 3, 4, 5, 6):
+        text = f"{value:.{digits}f}"
+        if float(text) < limit:
+            return text
+    return f"{value:.6f}"
+
+
 def describe_weakest(evidence: dict[str, float], snr: float, roundness: float,
                      clutter_ratio: float, colour: ColourEvidence) -> str:
     """The weakest evidence term of a candidate, in words."""
