@@ -39,7 +39,9 @@ FORBIDDEN = ("sfm_laserscale.detection", "sfm_laserscale.registration", "sfm_las
 def survey(tmp_path_factory: pytest.TempPathFactory) -> Survey:
     """12 reference and 4 laser images at 960 x 540, seed 1, the true rig in rig.toml. Seed 1's
     spots are all whitened clipped cores or lost among pale clutter: the detector alone leaves
-    two of the four laser images without a spot, so the guided search has work to do."""
+    three lasers of one laser image without a spot (two of the four images had none before its
+    brightness's blobs were found on a ridge-free response), so the guided search has work to
+    do."""
     out = tmp_path_factory.mktemp("underwater_survey") / "data"
     return make_survey(out, SurveyOptions(seed=1, rig_error_scale=0.0))
 
@@ -146,9 +148,9 @@ def test_spots_the_detector_missed_are_found_where_the_model_puts_them(
                 for im in report["images"] for s in im["spots"] if s["source"] == source]
 
     assert spots(alone, "guided") == []
-    assert sum(not im["spots"] for im in alone["images"]) >= 2  # what the search is for
+    assert sum(4 - len(im["spots"]) for im in alone["images"]) >= 3  # what the search is for
     found = spots(guided, "guided")
-    assert len(found) >= 6 and max(found) < 1.0, summary
+    assert len(found) >= 2 and max(found) < 1.0, summary
     assert sum(not im["spots"] for im in guided["images"]) == 0, summary
     assert len(spots(guided, "detected")) == len(spots(alone, "detected"))
     assert "guided" in guided["timings_s"] and "guided" not in alone["timings_s"]

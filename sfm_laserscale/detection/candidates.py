@@ -2,7 +2,10 @@
 
 For each response (:mod:`.response`: the colour response, and the brightness response in the
 bands of a luma-dominant (green) laser or where the laser channel clips) the local maxima of
-its multi-scale DoG above a noise-relative threshold are taken strongest first. Maxima outside
+its multi-scale blob response above a noise-relative threshold are taken strongest first: the
+DoG for the colour response, the ridge-free response (:func:`~.response.ridge_free_response`)
+for the brightness, whose DoG peaks along every edge and ridge of the scene and along the
+beams' glows in the water (``ridge_free_brightness``). Maxima outside
 every beam band, below ``min_clutter_ratio`` × the scene's clutter level, beyond
 ``max_candidates`` or repeating a stronger candidate are listed with that reason and not
 measured, except maxima in a band within reach of the gate (``second_look_clutter_ratio``),
@@ -42,6 +45,7 @@ from sfm_laserscale.detection.response import (
     clutter_level,
     local_maxima,
     make_planes,
+    ridge_free_response,
     robust_std,
 )
 from sfm_laserscale.detection.score import (
@@ -126,11 +130,18 @@ class _Source:
     where: NDArray[np.bool_] | None  # maxima allowed only here (None: everywhere)
 
 
+def _threshold(plane: F32, maxima_sigmas: float) -> float:
+    """``maxima_sigmas`` robust σ of a blob response over the crop, and at least 4/255."""
+    return max(maxima_sigmas * robust_std(plane[::4, ::4]), 4.0 / 255.0)
+
+
 def _source(name: str, plane: F32, options: DetectionOptions, scene: NDArray[np.bool_] | None,
             where: NDArray[np.bool_] | None, maxima_sigmas: float) -> _Source:
-    dog = blob_response(plane, options.spot_sigmas_px)
-    threshold = max(maxima_sigmas * robust_std(dog[::4, ::4]), 4.0 / 255.0)
-    return _Source(name, plane, dog, threshold, clutter_level(dog, where=scene), where)
+    ridge_free = name == "bright" and options.ridge_free_brightness
+    blobs = ridge_free_response if ridge_free else blob_response
+    dog = blobs(plane, options.spot_sigmas_px)
+    return _Source(name, plane, dog, _threshold(dog, maxima_sigmas),
+                   clutter_level(dog, where=scene), where)
 
 
 def _sources(channels: Channels, planes: Planes, options: DetectionOptions,

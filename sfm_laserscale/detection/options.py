@@ -54,6 +54,12 @@ class DetectionOptions:
     What a candidate is:
 
     - ``spot_sigmas_px``: blob scales (Gaussian sigma) searched by the DoG.
+    - ``ridge_free_brightness``: the brightness response's blobs (a green laser's spots, a
+      clipped core) are found, valued and judged against the scene on its ridge-free blob
+      response (the Hessian's flattest curvature, :func:`.response.ridge_free_response`):
+      brightness holds every edge of the scene's texture and the beams' glows in the water,
+      along which the DoG peaks and a spot beside or on one is no maximum of its own. False:
+      on its DoG, as the colour response is.
     - ``max_spot_radius_px``: larger half-maximum radius = not a spot; None = 1.5 % of the
       diagonal (≈ 33 px at 1920×1080).
     - ``min_snr``: peak contrast over the local background noise, below which a blob is no
@@ -152,6 +158,7 @@ class DetectionOptions:
     max_range_m: float = 10.0
     band_px: float | None = None
     spot_sigmas_px: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0)
+    ridge_free_brightness: bool = True
     max_spot_radius_px: float | None = None
     min_snr: float = 5.0
     max_annulus_ratio: float = 0.5

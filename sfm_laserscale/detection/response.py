@@ -14,9 +14,14 @@ Two responses are built per laser channel on the searched crop (linear intensiti
   saturated laser core in water of nearly the laser's colour, where the colour response sees
   little).
 
-Each is turned into a multi-scale, scale-normalised difference of Gaussians (DoG); its local
-maxima are the candidates. :func:`clutter_level` measures the scene's own blobs (texture,
-clutter) on the same DoG, so a candidate can be judged against them.
+Each is turned into a multi-scale, scale-normalised blob response; its local maxima are the
+candidates, and :func:`clutter_level` measures the scene's own blobs (texture, clutter) on the
+same response, so a candidate can be judged against them. The colour response's is a
+difference of Gaussians (DoG, :func:`blob_response`). The brightness holds every edge of the
+scene's texture and the beams' glows in the water: a DoG peaks along such ridges, and a spot
+beside or on one is no maximum of its own. Its blob response is *ridge-free*
+(:func:`ridge_free_response`, the Hessian's flattest curvature), which reads a round blob as
+the DoG does and a ridge or an edge as nothing.
 """
 
 from __future__ import annotations
@@ -36,6 +41,9 @@ F64 = NDArray[np.float64]
 CHANNELS: dict[str, int] = {"red": 0, "green": 1, "blue": 2}
 #: Gaussian sigma (px) of the local background used for the laser/other channel ratio
 RATIO_SMOOTH_PX = 24.0
+#: second differences for the Hessian: along a row (its transpose along a column), and mixed
+_SECOND_DIFF = np.array([[1.0, -2.0, 1.0]], dtype=np.float32)
+_CROSS_DIFF = np.array([[1.0, 0.0, -1.0], [0.0, 0.0, 0.0], [-1.0, 0.0, 1.0]], dtype=np.float32) / 4
 #: fewer positive local maxima than this in the searched region: no clutter level (too small)
 MIN_MAXIMA_FOR_CLUTTER = 50
 
@@ -187,6 +195,25 @@ def make_planes(
                   saturation_level=options.saturation_level)
 
 
+def _pyramid_level(resp: F32, sigma: float) -> tuple[F32, int]:
+    """The response on the pyramid level where a Gaussian of ``sigma`` px stays a few pixels
+    wide (reduced by a power of two with area averaging, from 4 px on), and that power."""
+    factor = 1
+    while sigma / (2 * factor) >= 2.0:
+        factor *= 2
+    if factor == 1:
+        return resp, 1
+    size = (max(1, resp.shape[1] // factor), max(1, resp.shape[0] // factor))
+    return np.asarray(cv2.resize(resp, size, interpolation=cv2.INTER_AREA), np.float32), factor
+
+
+def _full_size(plane: F32, shape: tuple[int, ...], factor: int) -> F32:
+    """A pyramid level's plane resized back to the response's ``shape`` (bilinear)."""
+    if factor > 1:
+        plane = cv2.resize(plane, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
+    return np.asarray(plane, dtype=np.float32)
+
+
 def dog_at_scale(resp: F32, sigma: float) -> F32:
     """Scale-normalised DoG -(G(1.6σ) - G(σ)) / 0.6 at full size, computed on a pyramid level.
 
@@ -194,22 +221,36 @@ def dog_at_scale(resp: F32, sigma: float) -> F32:
     averaging) so that the kernel stays a few pixels wide, then resized back (bilinear).
     """
     k = 1.6
-    factor = 1
-    while sigma / (2 * factor) >= 2.0:
-        factor *= 2
-    small = resp
-    if factor > 1:
-        size = (max(1, resp.shape[1] // factor), max(1, resp.shape[0] // factor))
-        small = cv2.resize(resp, size, interpolation=cv2.INTER_AREA)
+    small, factor = _pyramid_level(resp, sigma)
     s = sigma / factor
     g1 = cv2.GaussianBlur(small, (0, 0), s, borderType=cv2.BORDER_REFLECT)
     g2 = cv2.GaussianBlur(small, (0, 0), k * s, borderType=cv2.BORDER_REFLECT)
     dog = np.subtract(g1, g2, out=g1)  # in place (same numbers): one plane less at full size
     del g2
     np.divide(dog, np.float32(k - 1.0), out=dog)
-    if factor > 1:
-        dog = cv2.resize(dog, (resp.shape[1], resp.shape[0]), interpolation=cv2.INTER_LINEAR)
-    return np.asarray(dog, dtype=np.float32)
+    return _full_size(dog, resp.shape, factor)
+
+
+def ridge_free_at_scale(resp: F32, sigma: float) -> F32:
+    """Scale-normalised curvature of a bright blob along its flattest direction at full size:
+    ``-2 σ² λ`` with λ the larger eigenvalue of the Hessian of G(σ) * resp, 0 where λ >= 0.
+
+    A round bright blob curves down alike in every direction (λ1 = λ2 = ΔL / 2), so it reads
+    as the DoG does (-σ² ΔL); a ridge (a beam's glow in the water, a lit edge, a streak of the
+    texture) is flat along itself (λ ≈ 0) and reads 0; a spot on a ridge reads its own
+    curvature. Computed on the pyramid level :func:`dog_at_scale` uses (a curvature per pixel
+    of that level times its σ² is the same number at full size).
+    """
+    small, factor = _pyramid_level(resp, sigma)
+    s = sigma / factor
+    smooth = cv2.GaussianBlur(small, (0, 0), s, borderType=cv2.BORDER_REFLECT)
+    lxx = cv2.filter2D(smooth, -1, _SECOND_DIFF, borderType=cv2.BORDER_REFLECT)
+    lyy = cv2.filter2D(smooth, -1, _SECOND_DIFF.T, borderType=cv2.BORDER_REFLECT)
+    lxy = cv2.filter2D(smooth, -1, _CROSS_DIFF, borderType=cv2.BORDER_REFLECT)
+    half_gap = np.hypot(0.5 * (lxx - lyy), lxy)
+    flattest = 0.5 * (lxx + lyy) + half_gap  # the larger eigenvalue
+    out = np.maximum(np.float32(-2.0 * s * s) * flattest, np.float32(0.0))
+    return _full_size(out, resp.shape, factor)
 
 
 def blob_response(resp: F32, sigmas: tuple[float, ...]) -> F32:
@@ -217,6 +258,14 @@ def blob_response(resp: F32, sigmas: tuple[float, ...]) -> F32:
     out = dog_at_scale(resp, sigmas[0])
     for s in sigmas[1:]:
         np.maximum(out, dog_at_scale(resp, s), out=out)
+    return out
+
+
+def ridge_free_response(resp: F32, sigmas: tuple[float, ...]) -> F32:
+    """(H, W) max over ``sigmas`` of :func:`ridge_free_at_scale`."""
+    out = ridge_free_at_scale(resp, sigmas[0])
+    for s in sigmas[1:]:
+        np.maximum(out, ridge_free_at_scale(resp, s), out=out)
     return out
 
 
