@@ -120,11 +120,11 @@ class Measure:
 
 @dataclass(frozen=True)
 class _Source:
-    """One response's DoG and what it is judged against."""
+    """One response's blobs and what they are judged against."""
 
     name: str
     plane: F32  # the response (crop)
-    dog: F32
+    blobs: F32  # its blob response (DoG, or ridge-free for the brightness)
     threshold: float
     clutter: float
     where: NDArray[np.bool_] | None  # maxima allowed only here (None: everywhere)
@@ -138,10 +138,10 @@ def _threshold(plane: F32, maxima_sigmas: float) -> float:
 def _source(name: str, plane: F32, options: DetectionOptions, scene: NDArray[np.bool_] | None,
             where: NDArray[np.bool_] | None, maxima_sigmas: float) -> _Source:
     ridge_free = name == "bright" and options.ridge_free_brightness
-    blobs = ridge_free_response if ridge_free else blob_response
-    dog = blobs(plane, options.spot_sigmas_px)
-    return _Source(name, plane, dog, _threshold(dog, maxima_sigmas),
-                   clutter_level(dog, where=scene), where)
+    response = ridge_free_response if ridge_free else blob_response
+    blobs = response(plane, options.spot_sigmas_px)
+    return _Source(name, plane, blobs, _threshold(blobs, maxima_sigmas),
+                   clutter_level(blobs, where=scene), where)
 
 
 def _sources(channels: Channels, planes: Planes, options: DetectionOptions,
@@ -308,11 +308,11 @@ def candidates_for_colour(
     out: list[Measure] = []
     for src in sources:
         n_valid = n_second = 0
-        for row, col in local_maxima(src.dog, src.threshold)[: 4 * options.max_candidates]:
+        for row, col in local_maxima(src.blobs, src.threshold)[: 4 * options.max_candidates]:
             rc = (int(row), int(col))
             if src.name == "bright" and not _bright_candidate(src, rc, region):
                 continue  # the brightness response proposes clipped blobs in the bands only
-            value = float(src.dog[row, col])
+            value = float(src.blobs[row, col])
             m = Measure(x=col + 0.5, y=row + 0.5, color=color, source=src.name, response=value,
                         clutter_ratio=value / src.clutter if src.clutter > 0 else math.inf)
             m.rejected = (_unmeasured_reason(m, rc, src, region, n_valid, options)
