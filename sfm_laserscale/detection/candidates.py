@@ -130,9 +130,9 @@ class _Source:
     where: NDArray[np.bool_] | None  # maxima allowed only here (None: everywhere)
 
 
-def _threshold(plane: F32, maxima_sigmas: float) -> float:
+def _threshold(blobs: F32, maxima_sigmas: float) -> float:
     """``maxima_sigmas`` robust σ of a blob response over the crop, and at least 4/255."""
-    return max(maxima_sigmas * robust_std(plane[::4, ::4]), 4.0 / 255.0)
+    return max(maxima_sigmas * robust_std(blobs[::4, ::4]), 4.0 / 255.0)
 
 
 def _source(name: str, plane: F32, options: DetectionOptions, scene: NDArray[np.bool_] | None,

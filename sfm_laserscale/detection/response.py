@@ -27,6 +27,7 @@ the DoG does and a ridge or an edge as nothing.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -253,20 +254,23 @@ def ridge_free_at_scale(resp: F32, sigma: float) -> F32:
     return _full_size(out, resp.shape, factor)
 
 
+def _max_over_scales(resp: F32, sigmas: tuple[float, ...],
+                     at_scale: Callable[[F32, float], F32]) -> F32:
+    """(H, W) max over ``sigmas`` of a scale-normalised blob response ``at_scale``."""
+    out = at_scale(resp, sigmas[0])
+    for s in sigmas[1:]:
+        np.maximum(out, at_scale(resp, s), out=out)
+    return out
+
+
 def blob_response(resp: F32, sigmas: tuple[float, ...]) -> F32:
     """(H, W) max over ``sigmas`` of the scale-normalised DoG of a colour response."""
-    out = dog_at_scale(resp, sigmas[0])
-    for s in sigmas[1:]:
-        np.maximum(out, dog_at_scale(resp, s), out=out)
-    return out
+    return _max_over_scales(resp, sigmas, dog_at_scale)
 
 
 def ridge_free_response(resp: F32, sigmas: tuple[float, ...]) -> F32:
     """(H, W) max over ``sigmas`` of :func:`ridge_free_at_scale`."""
-    out = ridge_free_at_scale(resp, sigmas[0])
-    for s in sigmas[1:]:
-        np.maximum(out, ridge_free_at_scale(resp, s), out=out)
-    return out
+    return _max_over_scales(resp, sigmas, ridge_free_at_scale)
 
 
 def local_maxima(dog: F32, min_value: float) -> NDArray[np.intp]:

@@ -215,7 +215,7 @@ def clutter_term(ratio: float, half: float) -> float:
 def below(value: float, limit: float) -> str:
     """``value`` in two decimals, or in as many more (up to six) as it takes to read below
     ``limit``: a score of 0.598 against 0.6 reads "0.598", not "0.60"."""
-    for digits in (2, 3, 4, 5, 6):
+    for digits in range(2, 6):
         text = f"{value:.{digits}f}"
         if float(text) < limit:
             return text
