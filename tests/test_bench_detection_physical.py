@@ -39,6 +39,11 @@ def test_scoring_found_missed_false(bench: ModuleType) -> None:
     assert any(m["reason"] == "no candidate near the beam" for m in rec["misses"])
     assert {f["laser"] for f in rec["falses"]} == {"L2", "L4"}  # too far; laser off
     assert rec["truths"] == 3 and rec["reported"] == 3
+    # a spot of a laser in view reported off carries its error and stated σ; a laser off none
+    off = {f["laser"]: f for f in rec["falses"]}
+    assert (off["L2"]["dx"], off["L2"]["dy"]) == (3.0, 0.0)
+    assert off["L2"]["sigma_px"] == Spot("L2", 203.0, 100.0).sigma_px
+    assert "sigma_px" not in off["L4"]
 
 
 def test_summary_rows(bench: ModuleType) -> None:
@@ -61,23 +66,32 @@ def test_summary_rows(bench: ModuleType) -> None:
 
 
 def test_pooled_lines_per_size_and_wavelength(bench: ModuleType) -> None:
-    def rec(size: str, nm: float, dx: float, sigma: float) -> dict:
+    def rec(size: str, nm: float, dx: float, sigma: float,
+            off: tuple[dict, ...] = ({"laser": "L2"},)) -> dict:
         return {"size": size, "wavelength_nm": nm, "truths": 2, "reported": 2,
                 "found": [{"error_px": abs(dx), "dx": dx, "dy": 0.0, "sigma_px": sigma}],
-                "falses": [{"laser": "L2"}]}
+                "falses": list(off)}
 
-    # 532 nm: per-axis errors 0.1 / 0.1 px (σ), 0.4 / 0.1 (4σ) and two zeros; 638 nm: 2σ
+    # 532 nm: per-axis errors 0.1 / 0.1 px (σ), 0.4 / 0.1 (4σ) and two zeros; 638 nm: 2σ, and
+    # its L2 reported 2 px off with σ 0.1 px (20σ and 0 on its axes)
+    far = {"laser": "L2", "dx": 2.0, "dy": 0.0, "sigma_px": 0.1}
     recs = [rec("8x8", 532.0, 0.1, 0.1), rec("8x8", 532.0, 0.4, 0.1),
-            rec("8x8", 638.0, 0.2, 0.1), rec("4x4", 450.0, 0.0, 0.1)]
+            rec("8x8", 638.0, 0.2, 0.1, (far,)), rec("4x4", 450.0, 0.0, 0.1)]
     lines = bench.pooled_lines(recs)
     assert [ln.split(":")[0] for ln in lines] == [
-        "8x8 pooled", "8x8 σ, all", "8x8 σ, 532 nm", "8x8 σ, 638 nm",
-        "4x4 pooled", "4x4 σ, all", "4x4 σ, 450 nm"]
+        "8x8 pooled", "8x8 σ, all", "8x8 σ, every reported spot of a laser in view",
+        "8x8 σ, 532 nm", "8x8 σ, 638 nm", "4x4 pooled", "4x4 σ, all",
+        "4x4 σ, every reported spot of a laser in view", "4x4 σ, 450 nm"]
     assert lines[0].startswith("8x8 pooled: 3 of 6 spots found (50.0 %), 3 false of 6")
     assert "median 0.200 px" in lines[0]
-    assert "2 spots" in lines[2] and "within 1.96σ 75.0 %, within 3σ 75.0 %, worst 4.0σ" in lines[2]
-    assert "within 1.96σ 50.0 %, within 3σ 100.0 %, worst 2.0σ" in lines[3]
+    assert "2 spots" in lines[3] and "within 1.96σ 75.0 %, within 3σ 75.0 %, worst 4.0σ" in lines[3]
+    assert "within 1.96σ 50.0 %, within 3σ 100.0 %, worst 2.0σ" in lines[4]
     assert "3 spots" in lines[1] and "within 1.96σ 66.7 %" in lines[1]
+    # the found spots' six axes and the off spot's two: 5 of 8 within 1.96σ, 6 within 3σ
+    assert lines[2].endswith("4 spots (1 beyond 1.5 px), within 1.96σ 62.5 %, "
+                             "within 3σ 75.0 %, worst 20.0σ")
+    assert lines[7].endswith("1 spot (0 beyond 1.5 px), within 1.96σ 100.0 %, "
+                             "within 3σ 100.0 %, worst 0.0σ")
 
 
 def test_reduced_run_end_to_end(bench: ModuleType) -> None:
