@@ -164,7 +164,7 @@ def score_frame(frame: Frame, result: Any) -> dict[str, Any]:
                      "nearest_truth_px": near,
                      "why": "laser off / no spot" if truth is None
                      else f"{err:.2f} px from its truth"}
-            if truth is not None:  # its own laser's spot, off: what its σ states, for _z_reported
+            if truth is not None:  # its own laser's spot, off: for _reported_sigma_words
                 false |= {"dx": spot.x - truth[0], "dy": spot.y - truth[1],
                           "sigma_px": spot.sigma_px}
             falses.append(false)
@@ -274,14 +274,24 @@ def _within(recs: list[dict[str, Any]], k: float) -> float | None:
     return 100.0 * float(np.mean(z <= k)) if z.size else None
 
 
+def _per_axis_z(spots: Sequence[dict[str, Any]]) -> NDArray[np.float64]:
+    """Per-axis |error| / stated σ of spot records carrying ``dx``, ``dy`` and ``sigma_px``."""
+    return np.array([abs(f[k]) / f["sigma_px"] for f in spots for k in ("dx", "dy")],
+                    dtype=np.float64)
+
+
+def _coverage_words(z: NDArray[np.float64]) -> str:
+    """The shares of per-axis errors within 1.96σ and 3σ, and the worst, in words."""
+    return (f"within 1.96σ {100 * float(np.mean(z <= 1.96)):.1f} %, within 3σ "
+            f"{100 * float(np.mean(z <= 3.0)):.1f} %, worst {float(z.max()):.1f}σ")
+
+
 def _z_and_errors(recs: Sequence[dict[str, Any]]
                   ) -> tuple[NDArray[np.float64], NDArray[np.float64], list[float]]:
     """The found spots' per-axis |error| / σ, per-axis signed errors (px) and stated σ (px)."""
     found = [f for r in recs for f in r["found"] if f.get("sigma_px")]
     errs = np.array([f[k] for f in found for k in ("dx", "dy")], dtype=np.float64)
-    z = np.array([abs(f[k]) / f["sigma_px"] for f in found for k in ("dx", "dy")],
-                 dtype=np.float64)
-    return z, errs, [f["sigma_px"] for f in found]
+    return _per_axis_z(found), errs, [f["sigma_px"] for f in found]
 
 
 def _sigma_words(recs: Sequence[dict[str, Any]]) -> str:
@@ -291,31 +301,21 @@ def _sigma_words(recs: Sequence[dict[str, Any]]) -> str:
         return "no spot found"
     robust = 1.4826 * float(np.median(np.abs(errs - np.median(errs))))
     return (f"{len(sigmas)} spots, per-axis error {robust:.3f} px (robust σ), stated σ "
-            f"{float(np.median(sigmas)):.3f} px (median), within 1.96σ "
-            f"{100 * float(np.mean(z <= 1.96)):.1f} %, within 3σ "
-            f"{100 * float(np.mean(z <= 3.0)):.1f} %, worst {float(z.max()):.1f}σ")
-
-
-def _z_reported(recs: Sequence[dict[str, Any]]) -> tuple[NDArray[np.float64], int]:
-    """Per-axis |error| / σ of every reported spot of a laser in view, and how many of them lie
-    beyond MATCH_PX of their truth: ``scale`` uses a spot whichever it is, so the found spots
-    alone (:func:`_z_and_errors`) leave out the ones whose σ matters most."""
-    off = [f for r in recs for f in r["falses"] if f.get("sigma_px")]
-    spots = [f for r in recs for f in r["found"] if f.get("sigma_px")] + off
-    z = np.array([abs(f[k]) / f["sigma_px"] for f in spots for k in ("dx", "dy")],
-                 dtype=np.float64)
-    return z, len(off)
+            f"{float(np.median(sigmas)):.3f} px (median), {_coverage_words(z)}")
 
 
 def _reported_sigma_words(recs: Sequence[dict[str, Any]]) -> str:
-    """How the stated σ holds the errors of every reported spot of a laser in view, in words."""
-    z, n_off = _z_reported(recs)
-    if not z.size:
+    """How the stated σ holds the errors of every reported spot of a laser in view, in words:
+    the found spots and a laser's own spots reported beyond MATCH_PX of their truth (their
+    false records carry ``sigma_px``). ``scale`` uses a spot whichever it is, so the found
+    spots alone (:func:`_sigma_words`) leave out the ones whose σ matters most."""
+    off = [f for r in recs for f in r["falses"] if f.get("sigma_px")]
+    spots = [f for r in recs for f in r["found"] if f.get("sigma_px")] + off
+    if not spots:
         return "no spot reported"
-    n = z.size // 2
-    return (f"{n} spot{'' if n == 1 else 's'} ({n_off} beyond {MATCH_PX:g} px), within 1.96σ "
-            f"{100 * float(np.mean(z <= 1.96)):.1f} %, within 3σ "
-            f"{100 * float(np.mean(z <= 3.0)):.1f} %, worst {float(z.max()):.1f}σ")
+    n = len(spots)
+    return (f"{n} spot{'' if n == 1 else 's'} ({len(off)} beyond {MATCH_PX:g} px), "
+            f"{_coverage_words(_per_axis_z(spots))}")
 
 
 def pooled_lines(records: Sequence[dict[str, Any]]) -> list[str]:
