@@ -22,7 +22,9 @@ spots, detection seconds per image, the misses (image index, laser, the detector
 from ``result.missing``) and the falses. Targets: found >= 99 %, false <= 0.5 %, median <=
 0.15 px, p95 <= 0.5 px. Per size, how the stated σ holds the errors: of the found spots (all
 and per wavelength), and of every reported spot of a laser in view (the found ones and those
-reported beyond 1.5 px, which ``scale`` uses all the same).
+reported beyond 1.5 px, which ``scale`` uses all the same). Each miss records the detector's
+candidate at its truth (``at_truth``: the nearest within 1.5 px, the test it failed), and a
+line per size counts the misses by it.
 
 ``--visibility`` also captures every frame without the lasers (same noise draws) and records,
 for each missed spot, how much it changes the photograph (``visible_levels``: the largest
@@ -178,9 +180,33 @@ def score_frame(frame: Frame, result: Any) -> dict[str, Any]:
         else:
             reason = str(result.missing.get(laser, "not reported"))
         visible = frame.meta.get("spots", {}).get(laser, {}).get("visible_levels")
-        misses.append({"laser": laser, "reason": reason, "visible_levels": visible})
+        misses.append({"laser": laser, "reason": reason, "visible_levels": visible,
+                       "at_truth": candidate_at(result, truth)})
     return {"truths": len(truths), "reported": len(result.spots), "found": found,
             "misses": misses, "falses": falses}
+
+
+def candidate_at(result: Any, truth: tuple[float, float]) -> dict[str, Any] | None:
+    """The detector's candidate nearest a missed spot's truth, within MATCH_PX (None when
+    there is none): how far, which response it came from, the test it failed (its reason's
+    gist, :func:`candidate_test`), its score and its response in clutter levels."""
+    near = [(math.hypot(c.x - truth[0], c.y - truth[1]), c)
+            for c in getattr(result, "candidates", ())]
+    if not near:
+        return None
+    dist, cand = min(near, key=lambda dc: dc[0])
+    if dist > MATCH_PX:
+        return None
+    ratio = float(cand.clutter_ratio)
+    return {"distance_px": dist, "source": cand.source, "test": candidate_test(cand.reason),
+            "score": cand.score, "clutter_ratio": ratio if math.isfinite(ratio) else None}
+
+
+def candidate_test(reason: str) -> str:
+    """A candidate's reason up to its first detail, laser names as L#: "no stronger than the
+    scene's own blobs (response 1.2 × …)" -> "no stronger than the scene's own blobs"."""
+    head = re.split(r" \(|:", reason, maxsplit=1)[0]
+    return re.sub(r"\bL\d+\b", "L#", head).strip()
 
 
 def run_job(job: Job) -> dict[str, Any]:
@@ -337,7 +363,21 @@ def pooled_lines(records: Sequence[dict[str, Any]]) -> list[str]:
         for nm in sorted({r["wavelength_nm"] for r in recs if r.get("wavelength_nm")}):
             lines.append(f"{size} σ, {nm:g} nm: "
                          f"{_sigma_words([r for r in recs if r.get('wavelength_nm') == nm])}")
+        at_truth = _at_truth_words(recs)
+        if at_truth:
+            lines.append(f"{size} misses, the candidate at the truth: {at_truth}")
     return lines
+
+
+def _at_truth_words(recs: Sequence[dict[str, Any]]) -> str | None:
+    """The misses counted by the detector's candidate at their truth (:func:`candidate_at`):
+    none within MATCH_PX, or the test it failed; None when no miss records it (older runs)."""
+    misses = [m for r in recs for m in r.get("misses", ()) if "at_truth" in m]
+    if not misses:
+        return None
+    kinds = Counter(m["at_truth"]["test"] if m["at_truth"] else f"none within {MATCH_PX:g} px"
+                    for m in misses)
+    return f"{len(misses)} misses: " + "; ".join(f"{k} {n}" for k, n in kinds.most_common())
 
 
 def _counts_words(recs: Sequence[dict[str, Any]]) -> str:

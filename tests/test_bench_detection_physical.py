@@ -44,6 +44,38 @@ def test_scoring_found_missed_false(bench: ModuleType) -> None:
     assert (off["L2"]["dx"], off["L2"]["dy"]) == (3.0, 0.0)
     assert off["L2"]["sigma_px"] == Spot("L2", 203.0, 100.0).sigma_px
     assert "sigma_px" not in off["L4"]
+    # no candidate list on this result: nothing recorded at the misses' truths
+    assert all(m["at_truth"] is None for m in rec["misses"])
+
+
+def test_a_miss_records_the_candidate_at_its_truth(bench: ModuleType) -> None:
+    frame = _frame({"L1": (100.0, 100.0), "L2": (200.0, 100.0), "L3": (300.0, 50.0)})
+
+    def cand(x: float, y: float, reason: str, ratio: float = 2.0) -> SimpleNamespace:
+        return SimpleNamespace(x=x, y=y, source="bright", reason=reason, score=0.0,
+                               clutter_ratio=ratio)
+
+    result = SimpleNamespace(
+        spots=(Spot("L1", 100.2, 100.0),), missing={},
+        candidates=(cand(100.2, 100.0, "assigned to L1"),
+                    cand(200.9, 100.9, "no stronger than the scene's own blobs (response 1.21 "
+                         "× clutter level; and weak (SNR 4.9 < 5))", 1.21),
+                    cand(200.3, 99.0, "score below min_score for L2: colour"),  # 1.04 px
+                    cand(301.6, 50.0, "weak (SNR 3.1 < 5)", float("inf"))))  # beyond 1.5 px
+    rec = bench.score_frame(frame, result)
+    at = {m["laser"]: m["at_truth"] for m in rec["misses"]}
+    assert at["L3"] is None
+    assert at["L2"]["test"] == "score below min_score for L#"
+    assert at["L2"]["distance_px"] == pytest.approx(np.hypot(0.3, 1.0))
+    assert bench.candidate_test("not chosen for L4: the joint choice left it out") == \
+        "not chosen for L#"
+    assert bench.candidate_test("no stronger than the scene's own blobs (response 1.21 × "
+                                "clutter level)") == "no stronger than the scene's own blobs"
+    recs = [{"size": "8x8", "truths": 3, "reported": 1, "falses": [],
+             "found": [{"error_px": 0.2, "dx": 0.2, "dy": 0.0, "sigma_px": 0.1}], **rec}] * 2
+    line = bench.pooled_lines(recs)[-1]
+    assert line == ("8x8 misses, the candidate at the truth: 4 misses: score below min_score "
+                    "for L# 2; none within 1.5 px 2")  # most first, ties as first met
 
 
 def test_summary_rows(bench: ModuleType) -> None:
