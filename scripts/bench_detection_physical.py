@@ -312,10 +312,15 @@ def _coverage_words(z: NDArray[np.float64]) -> str:
             f"{100 * float(np.mean(z <= 3.0)):.1f} %, worst {float(z.max()):.1f}σ")
 
 
+def _found_with_sigma(recs: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The found spots' records that state a σ."""
+    return [f for r in recs for f in r["found"] if f.get("sigma_px")]
+
+
 def _z_and_errors(recs: Sequence[dict[str, Any]]
                   ) -> tuple[NDArray[np.float64], NDArray[np.float64], list[float]]:
     """The found spots' per-axis |error| / σ, per-axis signed errors (px) and stated σ (px)."""
-    found = [f for r in recs for f in r["found"] if f.get("sigma_px")]
+    found = _found_with_sigma(recs)
     errs = np.array([f[k] for f in found for k in ("dx", "dy")], dtype=np.float64)
     return _per_axis_z(found), errs, [f["sigma_px"] for f in found]
 
@@ -336,7 +341,7 @@ def _reported_sigma_words(recs: Sequence[dict[str, Any]]) -> str:
     false records carry ``sigma_px``). ``scale`` uses a spot whichever it is, so the found
     spots alone (:func:`_sigma_words`) leave out the ones whose σ matters most."""
     off = [f for r in recs for f in r["falses"] if f.get("sigma_px")]
-    spots = [f for r in recs for f in r["found"] if f.get("sigma_px")] + off
+    spots = _found_with_sigma(recs) + off
     if not spots:
         return "no spot reported"
     n = len(spots)
