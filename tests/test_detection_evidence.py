@@ -438,6 +438,31 @@ def test_white_glint_on_the_beam_is_not_a_spot_and_the_reason_names_it() -> None
     assert near and math.dist((near[0].x, near[0].y), glint) < 1.0
 
 
+def test_the_near_misses_rank_rejected_maxima_by_clutter_levels_not_raw_response() -> None:
+    """A strong brightness maximum (5.6 clutter levels of its response) that failed a shape
+    test is named before colour maxima whose raw response is larger but stands 1.1-1.3 levels
+    above the scene's blobs: the two responses differ in scale."""
+    from sfm_laserscale.detection.beams import SearchRegion
+    from sfm_laserscale.detection.candidates import Measure
+    from sfm_laserscale.detection.explain import missing_reason, near_misses
+
+    las = _rig("red").lasers[0]
+    line = np.array([[100.0, 200.0], [900.0, 200.0]])
+    region = SearchRegion((0, 0, 1024, 768), {las.name: line},
+                          {las.name: np.array([1.0, 5.0])}, None, 14.0, 33.0)
+    gated = "no stronger than the scene's own blobs (response {:.2f} × clutter level; not measured)"
+    blobs = [Measure(x=300.5 + 40 * k, y=205.5, color="red", source="colour", response=0.2,
+                     clutter_ratio=c, rejected=gated.format(c))
+             for k, c in enumerate((1.3, 1.2, 1.1))]
+    core = Measure(x=500.5, y=198.5, color="red", source="bright", response=0.05,
+                   clutter_ratio=5.6, rejected="too large to be a spot (half-max radius > 33.0 px)")
+    best, _ = near_misses(las, [*blobs, core], region, DetectionOptions())
+    assert best == [core, blobs[0], blobs[1]]
+    reason = missing_reason(las, [*blobs, core], region, DetectionOptions())
+    assert reason.index("(500.5, 198.5): too large") < reason.index("(300.5, 205.5)")
+    assert "(380.5, 205.5)" not in reason
+
+
 def test_laser_light_farther_along_the_beam_marks_a_nearer_blob_as_lit_in_the_water() -> None:
     """A particle crossing the beam near the camera glows in the laser's colour; the beam's end
     on the floor lies farther along it: the far spot is the laser's, the near one is not."""

@@ -1,12 +1,13 @@
 """Why a calibrated laser has no spot: what was in its band, and the test each candidate failed.
 
-The reason names up to :data:`NEAR_MISSES` candidates within the laser's band, best first
-(measured ones by their score for this laser, then the others by response), each with its
-position, score and why it was not taken: the hard test it failed ("weak (SNR 3.1 < 6)",
-"too large to be a spot ..."), its weakest evidence ("colour of the scene, not of the laser
-..."), the test of the joint choice that a clipped core whose colour cannot be read failed
-(:func:`~sfm_laserscale.detection.joint.why_not_rescued`), or the laser that took it. With
-nothing in the band it says so, and where the nearest candidate lay.
+The reason names up to :data:`NEAR_MISSES` candidates within the laser's band, best first:
+measured ones by their score for this laser, then the others by how many clutter levels of
+their own response they stand (the colour and brightness responses differ in scale). Each
+comes with its position, score and why it was not taken: the hard test it failed ("weak (SNR
+3.1 < 6)", "too large to be a spot ..."), its weakest evidence ("colour of the scene, not of
+the laser ..."), the test of the joint choice that a clipped core whose colour cannot be read
+failed (:func:`~sfm_laserscale.detection.joint.why_not_rescued`), or the laser that took it.
+With nothing in the band it says so, and where the nearest candidate lay.
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ def near_misses(las: Laser, measures: list[Measure], region: SearchRegion,
     def rank(i: int) -> tuple[int, float]:
         m = same[i]
         if m.rejected is not None:
-            return (1, -m.response)
+            return (1, -m.clutter_ratio)
         beam = float(beam_term(dist[i : i + 1], region.band_px)[0])
         return (0, -float(np.prod(list(evidence(m, beam, las.name).values()))))
 
