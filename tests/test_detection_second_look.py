@@ -14,6 +14,7 @@ import sfm_laserscale.detection.detect as detect_module
 from sfm_laserscale.commands.detect import parse_camera
 from sfm_laserscale.detection import DetectionOptions, assign, detect_spots
 from sfm_laserscale.detection.assign import WHITENED_AT_RANGE
+from sfm_laserscale.detection.beams import default_band_px
 from sfm_laserscale.detection.joint import ALL_WHITENED_BEAM, CLIPPED_COLOUR, RESCUE_RANGE_LN
 from sfm_laserscale.model import Camera
 from sfm_laserscale.rig import Rig, rig_from_dict
@@ -170,3 +171,57 @@ def test_a_whitened_core_at_the_other_spots_range_is_taken_on_a_second_look(
     monkeypatch.setattr(detect_module, "WHITENED_FLOOR_SPOTS", 4)  # nor near the floor's point
     before = detect_spots(frame.image_rgb, camera, rig)
     assert name not in {s.laser for s in before.spots} and name in before.missing
+
+
+def _rig3() -> Rig:
+    """Three green lasers converging 2° on the optical axis from three sides."""
+    t = math.radians(2.0)
+    s, c = math.sin(t), math.cos(t)
+    return rig_from_dict({"laser": [
+        {"name": "L1", "origin": [0.165, 0.0, 0.0], "direction": [-s, 0.0, c], "color": "green"},
+        {"name": "L2", "origin": [0.0, 0.165, 0.0], "direction": [0.0, -s, c], "color": "green"},
+        {"name": "L3", "origin": [-0.165, 0.0, 0.0], "direction": [s, 0.0, c], "color": "green"}]})
+
+
+def _white_l3(rig: Rig, range_m: float, across_px: float = 0.0) -> np.ndarray:
+    """L1's and L2's spots bright at 2.5 m; on L3's beam at ``range_m``, ``across_px`` off its
+    image (downwards, across the horizontal beam), a blob of white light of a faint spot's
+    strength: a spot whose colour the photograph does not show."""
+    rng = np.random.default_rng(12)
+    img = np.empty((CAMERA.height, CAMERA.width, 3), np.float32)
+    img[:] = WATER
+    img += rng.normal(0.0, 0.004, img.shape).astype(np.float32)
+    for name in ("L1", "L2"):
+        paint_spot(img, _xy3(rig, name, 2.5), "green", sigma_px=1.5, peak=1.5)
+    x, y = _xy3(rig, "L3", range_m)
+    yy, xx = np.mgrid[0 : CAMERA.height, 0 : CAMERA.width] + 0.5
+    img += (0.08 * np.exp(-0.5 * ((xx - x) ** 2 + (yy - y - across_px) ** 2) / 1.5**2)
+            )[..., None].astype(np.float32)
+    return to_uint8(img, 2.2)
+
+
+def _xy3(rig: Rig, name: str, range_m: float) -> tuple[float, float]:
+    las = rig.lasers[rig.names.index(name)]
+    assert las.origin is not None and las.direction is not None
+    xy = CAMERA.project((las.origin + range_m * las.direction)[None, :])[0]
+    return float(xy[0]), float(xy[1])
+
+
+def test_a_blob_whose_colour_reads_white_is_taken_on_its_beams_line_at_the_spots_range() -> None:
+    """Beside two chosen spots, a blob whose colour term says scene (white light) on L3's beam's
+    line at their range is L3's spot, named for its colour in the reason; 0.2 ``band_px`` off
+    the line (a glint lies anywhere across a band), or at another range, it is not taken. (The
+    floor search, which takes any colour near the floor's point, is off.)"""
+    rig = _rig3()
+    options = DetectionOptions(floor_search=False)
+    res = detect_spots(_white_l3(rig, 2.5), CAMERA, rig, options)
+    got = {s.laser: s for s in res.spots}
+    assert set(got) == {"L1", "L2", "L3"}, res.missing
+    assert math.dist((got["L3"].x, got["L3"].y), _xy3(rig, "L3", 2.5)) < 0.3
+    taken = next(c for c in res.candidates if c.laser == "L3")
+    assert "its colour not the laser's (colour 0." in taken.reason, taken.reason
+    assert dict(taken.evidence)["colour"] == CLIPPED_COLOUR
+    band = default_band_px(CAMERA.width, CAMERA.height)
+    for image in (_white_l3(rig, 2.5, across_px=0.2 * band), _white_l3(rig, 4.0)):
+        res = detect_spots(image, CAMERA, rig, options)
+        assert {s.laser for s in res.spots} == {"L1", "L2"}, res.missing

@@ -6,8 +6,10 @@ is the candidate's evidence (:mod:`.score`), ``depth`` (below) and the agreement
 with the other lasers' spots; the spots are chosen jointly (:mod:`.joint`) and a laser whose
 best candidate scores below ``min_score`` gets none; a laser still without a spot then takes a
 laser-coloured maximum held back by the clutter gate at the range of the other spots, or a
-whitened clipped core on its beam's line there (:func:`second_look`), or one a few pixels
-from where the floor through three of them puts its spot (:func:`whitened_at_floor`). An
+candidate whose colour reads as not the laser's (a whitened clipped core, a far spot whose
+colour JPEG averages away: :func:`colour_unread`) on its beam's line there
+(:func:`second_look`), or one a few pixels from where the floor through three of them puts
+its spot (:func:`whitened_at_floor`). An
 uncalibrated laser takes the best free candidate of its colour when no other laser shares
 that colour. A laser without a spot is explained by the best candidates in its band, each
 with its score and the test it failed or its weakest evidence.
@@ -22,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sfm_laserscale.detection.beams import SearchRegion, distance_to_polyline, range_along_beam
-from sfm_laserscale.detection.candidates import Measure
+from sfm_laserscale.detection.candidates import WHITENED_MAX_COLOUR, Measure
 from sfm_laserscale.detection.joint import (
     CLIPPED_COLOUR,
     DEPTH,
@@ -64,6 +66,11 @@ WHITENED_FLOOR_REACH = 1.5
 WHITENED_FLOOR_BEAM = 0.3
 #: where such a core lies, in its reason
 AT_FLOOR = "{d:.1f} px from where the floor through the other lasers' spots puts it"
+#: an unclipped blob whose colour reads as not the laser's is taken by those rules only when
+#: its half-maximum radius is below this many times the chosen spots' median: with its colour
+#: unread, its size is what tells it from a wide glint (a whitened clipped core is exempt: its
+#: brightness makes it wider than a fainter spot beside it)
+UNLIT_MAX_WIDTH = 2.0
 
 
 def beam_term(dist_px: F64, band_px: float) -> F64:
@@ -218,6 +225,8 @@ RESCUED_PAIR = (f"{UNREADABLE_CORE}, one of 2 such cores on their beams' lines a
                 "where the floor through them holds the other lasers' spots")
 #: … and taken on the second look, on its beam's line (at the other lasers' spots' range)
 WHITENED_AT_RANGE = f"{UNREADABLE_CORE}, on its beam's line"
+#: … and an unclipped blob whose colour reads as not the laser's, taken there too
+COLOURLESS_AT_RANGE = "its colour not the laser's (colour {term:.2f}), on its beam's line"
 #: why a candidate reaching min_score on its own was not chosen for a laser left without a
 #: spot: every combination holding it put an option below min_score, or the spot chosen
 #: instead was dropped afterwards (alone in its image)
@@ -280,13 +289,15 @@ def second_look(rig: Rig, region: SearchRegion, measures: list[Measure], valid: 
     the ``chosen`` spots (:func:`~sfm_laserscale.detection.joint.agrees`); its clutter term is
     then CLUTTER_AT_RANGE and it is taken when that scores ``min_score``. A blob of the scene's
     texture sits anywhere along a band; a laser's spot sits at the range of the other spots.
-    A whitened clipped core (its colour unreadable, :data:`.candidates.WHITENED_MAX_COLOUR`)
+    A candidate whose colour reads as not the laser's (:func:`colour_unread`: a whitened
+    clipped core, or any blob with a colour term below :data:`.candidates.WHITENED_MAX_COLOUR`)
     qualifies too, beside two chosen spots or more, on its beam's line at their range
     (:func:`_whitened_at_range`). Taken maxima are appended to ``valid``; returns laser name ->
     index into ``valid``."""
     free = set(range(len(valid))) - set(chosen.values())
     pool = [m for m in measures if m.second_look] + [valid[j] for j in sorted(free)]
     ref = _chosen_range(region, valid, chosen)
+    radius = _chosen_radius(valid, chosen)
     index = {id(m): j for j, m in enumerate(valid)}
     taken: dict[str, int] = {}
     for las in rig.lasers:
@@ -294,7 +305,8 @@ def second_look(rig: Rig, region: SearchRegion, measures: list[Measure], valid: 
             continue
         fits = [(vb, m) for m in pool if las.color in ("any", m.color)
                 and (vb := _second_look_value(m, las.name, region, ref, options,
-                                              len(chosen) >= WHITENED_LOOK_SPOTS))[0] > 0.0]
+                                              len(chosen) >= WHITENED_LOOK_SPOTS, radius)
+                     )[0] > 0.0]
         if fits:
             (value, beam), m = max(fits, key=lambda f: f[0][0])
             _take_second_look(m, las.name, value, beam)
@@ -322,21 +334,44 @@ def _chosen_range(region: SearchRegion, valid: list[Measure], chosen: dict[str, 
     return float(np.median(finite)) if finite else None
 
 
+def _reads_unlit(m: Measure) -> bool:
+    """Whether a candidate's measured colour term is below WHITENED_MAX_COLOUR."""
+    return m.colour.measured and m.colour.term < WHITENED_MAX_COLOUR
+
+
+def colour_unread(m: Measure, spot_radius_px: float) -> bool:
+    """Whether a candidate's colour reads as not the laser's and its place must speak for it:
+    a whitened clipped core, or any blob whose colour term is below WHITENED_MAX_COLOUR (a core
+    whose laser channel nearly clips, a far spot of a pixel or two whose colour the camera's
+    chroma averages with its surroundings) whose half-maximum radius is below UNLIT_MAX_WIDTH ×
+    ``spot_radius_px`` (the chosen spots' median)."""
+    return m.whitened or (_reads_unlit(m) and m.radius_px < UNLIT_MAX_WIDTH * spot_radius_px)
+
+
+def _chosen_radius(valid: list[Measure], chosen: Mapping[str, int]) -> float:
+    """Median half-maximum radius (px) of the chosen spots (0 without any)."""
+    return float(np.median([valid[j].radius_px for j in chosen.values()])) if chosen else 0.0
+
+
 def _second_look_value(m: Measure, name: str, region: SearchRegion, ref_m: float,
-                       options: DetectionOptions, whitened_ok: bool) -> tuple[float, float]:
+                       options: DetectionOptions, whitened_ok: bool, spot_radius_px: float
+                       ) -> tuple[float, float]:
     """(score, beam term) of a second-look maximum for a laser; score 0 when it does not
-    qualify. A whitened clipped core (``whitened_ok``: beside WHITENED_LOOK_SPOTS chosen spots
-    or more) scores with CLIPPED_COLOUR for its colour where :func:`_whitened_at_range`."""
+    qualify. A candidate whose colour reads as not the laser's (:func:`colour_unread`;
+    ``whitened_ok``: beside WHITENED_LOOK_SPOTS chosen spots or more, of median radius
+    ``spot_radius_px``) scores with CLIPPED_COLOUR for its colour where
+    :func:`_whitened_at_range`."""
     line = region.polylines[name]
-    lit = m.colour.term >= LIT_COLOUR  # a whitened core's is below WHITENED_MAX_COLOUR
-    if len(line) == 0 or not (lit or (m.whitened and whitened_ok)):
+    lit = m.colour.term >= LIT_COLOUR
+    unread = colour_unread(m, spot_radius_px)
+    if len(line) == 0 or not (lit or (unread and whitened_ok)):
         return 0.0, 0.0
     dist = float(distance_to_polyline(np.array([[m.x, m.y]]), line)[0])
     range_m = _range_m(m, name, region)
-    if not (_whitened_at_range(dist, range_m, ref_m, region.band_px) if m.whitened
+    if not (_whitened_at_range(dist, range_m, ref_m, region.band_px) if unread
             else dist <= region.band_px and agrees(range_m, ref_m)):
         return 0.0, 0.0
-    colour = CLIPPED_COLOUR if m.whitened else m.colour.term
+    colour = CLIPPED_COLOUR if unread else m.colour.term
     return _waived_value(m, name, colour, dist, region.band_px, options.min_score)
 
 
@@ -362,29 +397,35 @@ def _take_second_look(m: Measure, name: str, value: float, beam: float,
     """In place: a second-look maximum becomes laser ``name``'s spot (``beam``: its term;
     ``where``: what placed it, in words)."""
     gated = m.rejected is not None
+    unread = m.whitened or _reads_unlit(m)  # a laser-coloured one's term is >= LIT_COLOUR
+    colour = (WHITENED_AT_RANGE if m.whitened else COLOURLESS_AT_RANGE.format(term=m.colour.term)
+              if unread else "laser-coloured")
     m.terms["clutter"] = CLUTTER_AT_RANGE
     m.range_fit[name] = 1.0
     m.evidence = evidence(m, beam, name)
-    if m.whitened:
+    if unread:
         m.evidence["colour"] = CLIPPED_COLOUR
     m.rejected, m.laser, m.score = None, name, value
     strength = ("below the clutter gate" if gated else "its clutter term waived")
     m.reason = (f"assigned to {name}: {strength} ({m.clutter_ratio:.2f} × clutter level), "
-                f"{WHITENED_AT_RANGE if m.whitened else 'laser-coloured'}, {where}")
+                f"{colour}, {where}")
 
 
 def whitened_at_floor(rig: Rig, region: SearchRegion, measures: list[Measure],
                       valid: list[Measure], chosen: dict[str, int],
                       predicted_px: Mapping[str, tuple[float, float]], reach_px: float,
                       options: DetectionOptions) -> dict[str, int]:
-    """Calibrated lasers still without a spot take the whitened clipped core nearest the point
+    """Calibrated lasers still without a spot take the candidate whose colour reads as not the
+    laser's (:func:`colour_unread`, a whitened clipped core among them) nearest the point
     where the floor through the chosen spots puts theirs (``predicted_px``: laser -> COLMAP
     (x, y)), within ``reach_px`` of it and WHITENED_FLOOR_BEAM × ``band_px`` of its beam's image,
     scored as the second look scores one (clutter term waived, colour CLIPPED_COLOUR) when that
-    reaches ``min_score``. Taken cores are appended to ``valid``; returns laser name -> index."""
+    reaches ``min_score``. Taken candidates are appended to ``valid``; returns laser name ->
+    index."""
     free = set(range(len(valid))) - set(chosen.values())
-    pool = [m for m in measures if m.second_look and m.whitened]
-    pool += [valid[j] for j in sorted(free) if valid[j].whitened]
+    radius = _chosen_radius(valid, chosen)
+    pool = [m for m in measures if m.second_look and colour_unread(m, radius)]
+    pool += [valid[j] for j in sorted(free) if colour_unread(valid[j], radius)]
     index = {id(m): j for j, m in enumerate(valid)}
     taken: dict[str, int] = {}
     for name, (px, py) in predicted_px.items():
@@ -406,9 +447,9 @@ def whitened_at_floor(rig: Rig, region: SearchRegion, measures: list[Measure],
 
 def _core_at_floor(m: Measure, name: str, region: SearchRegion, options: DetectionOptions
                    ) -> tuple[float, float]:
-    """(score, beam term) of a whitened clipped core near the floor's point for a laser; score
-    0 when it lies beyond WHITENED_FLOOR_BEAM × ``band_px`` of its beam's image or scores below
-    ``min_score``."""
+    """(score, beam term) of a candidate whose colour reads as not the laser's near the floor's
+    point for a laser; score 0 when it lies beyond WHITENED_FLOOR_BEAM × ``band_px`` of its
+    beam's image or scores below ``min_score``."""
     line = region.polylines[name]
     if len(line) == 0:
         return 0.0, 0.0
