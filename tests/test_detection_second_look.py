@@ -225,3 +225,25 @@ def test_a_blob_whose_colour_reads_white_is_taken_on_its_beams_line_at_the_spots
     for image in (_white_l3(rig, 2.5, across_px=0.2 * band), _white_l3(rig, 4.0)):
         res = detect_spots(image, CAMERA, rig, options)
         assert {s.laser for s in res.spots} == {"L1", "L2"}, res.missing
+
+
+def test_a_far_spot_whose_colour_reads_white_is_taken_beside_the_other_spots(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Physical frame (`faint_far`, seed 2, frame 18): L2's spot, 1.1 px in half-maximum radius,
+    reads in the scene's colour (term 0.05; JPEG's 4:2:0 chroma averages a spot that small
+    with its surroundings) and its laser channel does not clip, so it is no whitened core. The
+    other three spots are found; on its beam's line at their range it is taken. Read as
+    laser-coloured or not at all (the rule off), it was missed."""
+    ci = list(CONDITIONS).index("faint_far")
+    frame = render_frame("faint_far", 1920, 1080, np.random.default_rng([2, ci, 0, 18]))
+    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
+    truth = frame.truth["L2"]
+    assert truth is not None
+    res = detect_spots(frame.image_rgb, camera, rig)
+    got = {s.laser: s for s in res.spots}
+    assert len(got) == 4 and math.dist((got["L2"].x, got["L2"].y), truth) < 0.6
+    taken = next(c for c in res.candidates if c.laser == "L2")
+    assert "its colour not the laser's (colour 0.0" in taken.reason, taken.reason
+    monkeypatch.setattr(assign, "_reads_unlit", lambda m: False)
+    before = detect_spots(frame.image_rgb, camera, rig)
+    assert "L2" not in {s.laser for s in before.spots} and "L2" in before.missing
