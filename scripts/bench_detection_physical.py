@@ -35,7 +35,11 @@ line per draw follows. Rules are written on some draws and checked on others
 (docs/DETECTION.md, "Held-out draws"). ``--cache DIR`` keeps every rendered frame in DIR (one
 file per frame, under a folder named by a hash of the generator's source, so a changed
 generator never reuses stale frames): a run that re-scores the same frames after a change to
-the detector skips the rendering, about half of a run's time. ``--compare earlier.json`` (an
+the detector skips the rendering, about half of a run's time. After the run the folder is
+pruned (:func:`prune_cache`): frames of an earlier generator go, then the least recently used
+frames until it holds at most ``--cache-max-gb`` (40 GB by default, 0 for no limit; a draw of
+340 frames at 1920 × 1080 takes about 2.3 GB, at 4000 × 3000 about 12 GB), the run's own frames
+never. ``--compare earlier.json`` (an
 ``--out`` file of an earlier run of the same frames) prints, frame by frame, the spots found,
 lost or moved and the false spots gained or dropped.
 
@@ -46,11 +50,13 @@ lost or moved and the false spots gained or dropped.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import hashlib
 import json
 import math
 import multiprocessing
+import os
 import pickle
 import re
 import sys
@@ -130,6 +136,8 @@ def cached_frame(job: Job) -> Frame:
     if path is not None and path.exists():
         with path.open("rb") as f:
             cached: Frame = pickle.load(f)
+        with contextlib.suppress(OSError):  # a read-only cache is read all the same
+            os.utime(path)  # used now: the pruning keeps the recently used frames
         return cached
     frame = render_frame(job.condition, job.width, job.height, job.rng(), job.laser_free)
     if path is not None:
@@ -139,6 +147,34 @@ def cached_frame(job: Job) -> Frame:
             pickle.dump(frame, f, protocol=pickle.HIGHEST_PROTOCOL)
         partial.replace(path)  # whole files only, also when two runs share the folder
     return frame
+
+
+def prune_cache(cache: Path, max_bytes: int, keep: Iterable[Path]) -> tuple[int, int]:
+    """(files removed, bytes freed) from the frame cache ``cache``: every frame of another
+    generator (never read again, :func:`generator_version`), then the least recently used of
+    this generator's until the folder holds at most ``max_bytes`` (0: no limit); the frames in
+    ``keep`` (the run's own) stay whatever the limit."""
+    current = cache / generator_version()
+    frames = [p for p in cache.glob("*/*.pkl") if p.is_file()]
+    stale = [p for p in frames if p.parent != current]
+    kept = {p.resolve() for p in keep}
+    fresh = sorted((p for p in frames if p.parent == current), key=lambda p: p.stat().st_mtime)
+    total = sum(p.stat().st_size for p in fresh)
+    doomed = list(stale)
+    for p in fresh:
+        if max_bytes <= 0 or total <= max_bytes:
+            break
+        if p.resolve() not in kept:
+            doomed.append(p)
+            total -= p.stat().st_size
+    freed = 0
+    for p in doomed:
+        freed += p.stat().st_size
+        p.unlink()
+    for folder in {p.parent for p in stale}:
+        if not any(folder.iterdir()):
+            folder.rmdir()
+    return len(doomed), freed
 
 
 def score_frame(frame: Frame, result: Any) -> dict[str, Any]:
@@ -553,6 +589,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                          "the missed spots that are visible (slower: one more capture)")
     ap.add_argument("--cache", type=Path, default=None,
                     help="keep rendered frames in this folder and read them back on later runs")
+    ap.add_argument("--cache-max-gb", type=float, default=40.0,
+                    help="after the run, prune the cache to this size, least recently used "
+                         "frames first, the run's own kept (default 40; 0: no limit)")
     ap.add_argument("--compare", type=Path, default=None,
                     help="an earlier run's --out file: print what changed, frame by frame")
     args = ap.parse_args(argv)
@@ -586,7 +625,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"against {args.compare}:")
         print("\n".join(compare_records(earlier, records)))
     print(f"{len(records)} images in {elapsed:.0f} s", file=sys.stderr)
+    if args.cache is not None:
+        own = [cache_path(replace(j, cache=str(args.cache))) for s in args.seed
+               for j in jobs_for(conditions, args.sizes, args.per_condition, s, args.visibility)]
+        _prune_after_run(args.cache, args.cache_max_gb, own)
     return 0
+
+
+def _prune_after_run(cache: Path, max_gb: float, own: list[Path]) -> None:
+    """Prune the frame cache after a run, keeping its ``own`` frames (:func:`prune_cache`), and
+    say what it freed."""
+    removed, freed = prune_cache(cache, int(max_gb * 1e9), own)
+    if removed:
+        print(f"cache: {removed} frame(s) removed ({freed / 1e9:.1f} GB freed)", file=sys.stderr)
 
 
 if __name__ == "__main__":

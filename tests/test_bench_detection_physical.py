@@ -249,3 +249,42 @@ def test_command_line_draws_cache_and_compare(bench: ModuleType, tmp_path: Path,
     assert f"against {first}:" in out and "0 frames differ: 0 spots found, 0 lost" in out
     with pytest.raises(SystemExit):
         bench.main([*args, "--seed", "3-1"])
+    # a run of draw 0 alone with a tiny cache limit keeps its own frame, drops draw 1's
+    assert bench.main([*args, "--seed", "0", "--cache-max-gb", "1e-9"]) == 0
+    assert "cache: 1 frame(s) removed" in capsys.readouterr().err
+    assert [p.name for p in (tmp_path / "frames").glob("*/*.pkl")] == [
+        "s0_clipped_cores_320x240_z0_000.pkl"]
+
+
+def test_the_frame_cache_is_pruned_least_recently_used_first(bench: ModuleType,
+                                                              tmp_path: Path) -> None:
+    """Frames of another generator go first, then this generator's least recently used until
+    the folder fits its limit; the frames of the run stay whatever the limit."""
+    import os
+
+    current = tmp_path / bench.generator_version()
+    stale = tmp_path / "000000000000"
+    current.mkdir()
+    stale.mkdir()
+    (stale / "s0_old.pkl").write_bytes(b"x" * 500)
+    frames = [current / f"s0_f{i}.pkl" for i in range(4)]
+    for age, path in enumerate(frames):  # f0 used last, f3 longest ago
+        path.write_bytes(b"x" * 1000)
+        os.utime(path, (1e9 - 100 * age, 1e9 - 100 * age))
+    removed, freed = bench.prune_cache(tmp_path, 3000, keep=[frames[3]])
+    assert (removed, freed) == (2, 1500)  # the stale frame, then f2 (f3 is the run's own)
+    assert sorted(p.name for p in current.iterdir()) == ["s0_f0.pkl", "s0_f1.pkl", "s0_f3.pkl"]
+    assert not stale.exists()
+    assert bench.prune_cache(tmp_path, 0, keep=[]) == (0, 0)  # no limit: nothing else goes
+    assert bench.prune_cache(tmp_path, 1, keep=frames) == (0, 0)  # all the run's own
+
+
+def test_a_cached_frame_read_back_counts_as_used(bench: ModuleType, tmp_path: Path) -> None:
+    import os
+
+    job = bench.Job("clipped_cores", 320, 240, 0, 0, 0, 0, cache=str(tmp_path))
+    bench.cached_frame(job)
+    path = bench.cache_path(job)
+    os.utime(path, (1e9, 1e9))
+    bench.cached_frame(job)  # read back
+    assert path.stat().st_mtime > 1e9 + 1e6
