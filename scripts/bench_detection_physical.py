@@ -149,28 +149,34 @@ def cached_frame(job: Job) -> Frame:
     return frame
 
 
+def run_jobs(conditions: Sequence[str], sizes: Sequence[tuple[int, int]], per_condition: int,
+             seeds: Sequence[int], laser_free: bool, cache: Path | None) -> list[Job]:
+    """All images of a run over the draws ``seeds``, each job carrying the cache folder."""
+    return [replace(j, cache=None if cache is None else str(cache))
+            for s in seeds for j in jobs_for(conditions, sizes, per_condition, s, laser_free)]
+
+
 def prune_cache(cache: Path, max_bytes: int, keep: Iterable[Path]) -> tuple[int, int]:
     """(files removed, bytes freed) from the frame cache ``cache``: every frame of another
     generator (never read again, :func:`generator_version`), then the least recently used of
     this generator's until the folder holds at most ``max_bytes`` (0: no limit); the frames in
     ``keep`` (the run's own) stay whatever the limit."""
     current = cache / generator_version()
-    frames = [p for p in cache.glob("*/*.pkl") if p.is_file()]
-    stale = [p for p in frames if p.parent != current]
+    stats = {p: p.stat() for p in cache.glob("*/*.pkl") if p.is_file()}
+    stale = [p for p in stats if p.parent != current]
     kept = {p.resolve() for p in keep}
-    fresh = sorted((p for p in frames if p.parent == current), key=lambda p: p.stat().st_mtime)
-    total = sum(p.stat().st_size for p in fresh)
+    fresh = sorted((p for p in stats if p.parent == current), key=lambda p: stats[p].st_mtime)
+    total = sum(stats[p].st_size for p in fresh)
     doomed = list(stale)
     for p in fresh:
         if max_bytes <= 0 or total <= max_bytes:
             break
         if p.resolve() not in kept:
             doomed.append(p)
-            total -= p.stat().st_size
-    freed = 0
+            total -= stats[p].st_size
     for p in doomed:
-        freed += p.stat().st_size
         p.unlink()
+    freed = sum(stats[p].st_size for p in doomed)
     for folder in {p.parent for p in stale}:
         if not any(folder.iterdir()):
             folder.rmdir()
@@ -458,8 +464,7 @@ def run_benchmark(conditions: Sequence[str] | None = None,
     if unknown:
         raise ValueError(f"unknown condition(s) {unknown}; known: {list(CONDITIONS)}")
     seeds = [seed] if isinstance(seed, int) else list(seed)
-    jobs = [replace(j, cache=None if cache is None else str(cache))
-            for s in seeds for j in jobs_for(names, sizes, per_condition, s, laser_free)]
+    jobs = run_jobs(names, sizes, per_condition, seeds, laser_free, cache)
     if workers > 1 and len(jobs) > 1:
         pool = multiprocessing.get_context("fork").Pool(workers)
         try:
@@ -626,8 +631,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("\n".join(compare_records(earlier, records)))
     print(f"{len(records)} images in {elapsed:.0f} s", file=sys.stderr)
     if args.cache is not None:
-        own = [cache_path(replace(j, cache=str(args.cache))) for s in args.seed
-               for j in jobs_for(conditions, args.sizes, args.per_condition, s, args.visibility)]
+        own = [cache_path(j) for j in run_jobs(conditions, args.sizes, args.per_condition,
+                                               args.seed, args.visibility, args.cache)]
         _prune_after_run(args.cache, args.cache_max_gb, own)
     return 0
 

@@ -297,7 +297,7 @@ def second_look(rig: Rig, region: SearchRegion, measures: list[Measure], valid: 
     free = set(range(len(valid))) - set(chosen.values())
     pool = [m for m in measures if m.second_look] + [valid[j] for j in sorted(free)]
     ref = _chosen_range(region, valid, chosen)
-    radius = _chosen_radius(valid, chosen)
+    radius = chosen_radius(valid, chosen)
     index = {id(m): j for j, m in enumerate(valid)}
     taken: dict[str, int] = {}
     for las in rig.lasers:
@@ -339,23 +339,24 @@ def _reads_unlit(m: Measure) -> bool:
     return m.colour.measured and m.colour.term < WHITENED_MAX_COLOUR
 
 
-def colour_unread(m: Measure, spot_radius_px: float) -> bool:
+def colour_unread(m: Measure, spot_radius_px: float | None) -> bool:
     """Whether a candidate's colour reads as not the laser's and its place must speak for it:
     a whitened clipped core, or any blob whose colour term is below WHITENED_MAX_COLOUR (a core
     whose laser channel nearly clips, a far spot of a pixel or two whose colour the camera's
     chroma averages with its surroundings) whose half-maximum radius is below UNLIT_MAX_WIDTH ×
-    ``spot_radius_px`` (the chosen spots' median)."""
-    return m.whitened or (_reads_unlit(m) and m.radius_px < UNLIT_MAX_WIDTH * spot_radius_px)
+    ``spot_radius_px`` (the chosen spots' median; None without any)."""
+    return m.whitened or (_reads_unlit(m) and spot_radius_px is not None
+                          and m.radius_px < UNLIT_MAX_WIDTH * spot_radius_px)
 
 
-def _chosen_radius(valid: list[Measure], chosen: Mapping[str, int]) -> float:
-    """Median half-maximum radius (px) of the chosen spots (0 without any)."""
-    return float(np.median([valid[j].radius_px for j in chosen.values()])) if chosen else 0.0
+def chosen_radius(valid: list[Measure], chosen: Mapping[str, int]) -> float | None:
+    """Median half-maximum radius (px) of the chosen spots (None without any)."""
+    return float(np.median([valid[j].radius_px for j in chosen.values()])) if chosen else None
 
 
 def _second_look_value(m: Measure, name: str, region: SearchRegion, ref_m: float,
-                       options: DetectionOptions, whitened_ok: bool, spot_radius_px: float
-                       ) -> tuple[float, float]:
+                       options: DetectionOptions, whitened_ok: bool,
+                       spot_radius_px: float | None) -> tuple[float, float]:
     """(score, beam term) of a second-look maximum for a laser; score 0 when it does not
     qualify. A candidate whose colour reads as not the laser's (:func:`colour_unread`;
     ``whitened_ok``: beside WHITENED_LOOK_SPOTS chosen spots or more, of median radius
@@ -423,7 +424,7 @@ def whitened_at_floor(rig: Rig, region: SearchRegion, measures: list[Measure],
     reaches ``min_score``. Taken candidates are appended to ``valid``; returns laser name ->
     index."""
     free = set(range(len(valid))) - set(chosen.values())
-    radius = _chosen_radius(valid, chosen)
+    radius = chosen_radius(valid, chosen)
     pool = [m for m in measures if m.second_look and colour_unread(m, radius)]
     pool += [valid[j] for j in sorted(free) if colour_unread(valid[j], radius)]
     index = {id(m): j for j, m in enumerate(valid)}

@@ -24,6 +24,7 @@ from sfm_laserscale.detection.assign import (
     WHITENED_FLOOR_SPOTS,
     assign_calibrated,
     assign_uncalibrated,
+    chosen_radius,
     explain_unused,
     second_look,
     take_choice,
@@ -80,7 +81,7 @@ def _floor_round(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region:
     spots. Its spots, marked assigned, are appended to ``valid`` (``dist`` keeps the first
     columns); returned with, for the other lasers searched, what the search saw."""
     spots_px = {name: (valid[j].x, valid[j].y) for name, j in chosen.items()}
-    radius = float(np.median([valid[j].radius_px for j in chosen.values()])) if chosen else None
+    radius = chosen_radius(valid, chosen)
     found, why = {}, {}
     for name, find in floor_search(image_rgb, camera, rig, region, spots_px, options,
                                    radius).items():
