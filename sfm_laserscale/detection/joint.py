@@ -94,9 +94,11 @@ ALL_WHITENED_BEAM = 0.1
 ALL_WHITENED_RANGE_LN = 0.08
 #: a combination of this many whitened cores or more (one per beam of a four-beam scaler) …
 ALL_WHITENED_WIDE_MIN = 4
-#: … may lie this many ``band_px`` from their beams' images: 1.5 times the rig's stated
-#: calibration error, which ALL_WHITENED_BEAM is about (it holds two true cores in three)
-ALL_WHITENED_WIDE_BEAM = 0.15
+#: … may lie this many ``band_px`` from their beams' images: three times the rig's stated
+#: calibration error, which ALL_WHITENED_BEAM is about (it holds two true cores in three), so
+#: nearly every true core of the four; four glints at one range so near their lines turn up in
+#: none of the laser-free frames measured (docs/DETECTION.md, "The thirty-eighth round")
+ALL_WHITENED_WIDE_BEAM = 0.3
 #: an option taken on its own evidence within this many ``band_px`` of its beam's image (about
 #: 99 % of true spots: docs/DETECTION.md), with a rescued core on its line at its range, is not
 #: judged alone against the other lasers' leads (:func:`_backed`)
