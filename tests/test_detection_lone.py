@@ -30,7 +30,7 @@ from tests.test_detection_second_look import CAMERA
 OFF = DetectionOptions(lone_floor_spots=0)
 #: the brightness's DoG, on which the physical frames below were measured; with its ridge-free
 #: response (the default) seed 2's ``turbid_brown`` 15 has its three spots on their own
-#: evidence, and the laser-free frame a scene blob that scores 0.57 (docs/DETECTION.md)
+#: evidence, and the laser-free frame a scene blob that scores 0.57 (docs/DETECTION_ROUNDS.md)
 ON_DOG = DetectionOptions(ridge_free_brightness=False)
 
 

@@ -60,7 +60,7 @@ WHITENED_LOOK_SPOTS = 2
 WHITENED_FLOOR_SPOTS = 3
 #: how far from the floor's point such a core may lie, in floor search radii: the rig's
 #: calibration error puts the point a median 2.7 px from the spot at 1920 × 1080, 41 % of
-#: them beyond the search's 3.1 px (docs/DETECTION.md, "The twenty-fifth round")
+#: them beyond the search's 3.1 px (docs/DETECTION_ROUNDS.md, "The twenty-fifth round")
 WHITENED_FLOOR_REACH = 1.5
 #: … and from its beam's image, as a share of ``band_px`` (a true core's is up to 0.26 there)
 WHITENED_FLOOR_BEAM = 0.3

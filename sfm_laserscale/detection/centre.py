@@ -28,13 +28,13 @@ Either way its σ gains (disagreement_gain · d)², d the distance between the t
 (:class:`~sfm_laserscale.detection.options.SigmaModel`). A red or blue laser's clipped core is
 refined on luma too, but luma holds more of the scene's texture than of its light: it takes
 luma's centre only by the σ rule above, and otherwise keeps its centre and σ. Measured in
-docs/DETECTION.md ("Two signals", the twenty-first round).
+docs/DETECTION.md ("Two signals"; docs/DETECTION_ROUNDS.md, the twenty-first round).
 
 A clipped core has a third signal: the region where its laser channel clips, whose shape the
 scene's texture and colour do not pull. Its centroid is coarse (whole pixels, a noisy rim), so
 :func:`clipped_core_centre` takes it only where the centre from the two signals states a σ of
 twice the centroid's or more and lies CLIPPED_CENTROID_APART_PX from it, and where the region
-is a compact blob no wider than the spot (docs/DETECTION.md, the twenty-fourth round).
+is a compact blob no wider than the spot (docs/DETECTION_ROUNDS.md, the twenty-fourth round).
 
 Then :func:`polish_with_fit` fits a 2D Gaussian plus a constant to an unclipped chosen spot
 (:func:`fit_centre`, on the signal and window it was refined on). The centroid's Gaussian
@@ -46,7 +46,7 @@ with a wider one the fit is the more precise (tests/test_detection_fit_centre.py
 also follow something beside the spot (a texture edge, a neighbour's flank) where the
 centroid's fixed point does not, so it is taken only within ``fit_agree_sigmas`` of the spot's
 σ from the centroid, and the σ stays the centroid's. Clipped cores keep the centroid: a fit to
-their flanks alone was measured less accurate (docs/DETECTION.md, the sixteenth round).
+their flanks alone was measured less accurate (docs/DETECTION_ROUNDS.md, the sixteenth round).
 
 Then :func:`narrow_window_centre` refines the spot again under centroid windows narrower than
 its measured radius (NARROW_WINDOWS_PX) and takes the centre whose stated σ is
@@ -64,8 +64,8 @@ taken where its noise σ is at most ``crosstalk_max_noise_px`` (a core that brig
 within max(3 px, CROSSTALK_REACH_RADII half-maximum radii) of the centre so far, and its stated
 σ is the smaller (its structure terms hold the scene's texture in those channels). A green
 laser's cores keep theirs: its crosstalk channels are red and blue, where green water's
-texture and the 4:2:0 chroma weigh more (measured in docs/DETECTION.md, the thirty-second
-round). :func:`centre_chosen` runs these steps on one crop around the spot.
+texture and the 4:2:0 chroma weigh more (measured in docs/DETECTION_ROUNDS.md, the
+thirty-second round). :func:`centre_chosen` runs these steps on one crop around the spot.
 """
 
 from __future__ import annotations

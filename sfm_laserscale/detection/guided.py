@@ -64,7 +64,7 @@ class GuidedOptions:
     - ``maxima_sigmas``: local maxima are listed from this many robust σ of their response's
       DoG over the search's crop (the detector lists its bands' from 4). The crop's spread
       is its scene's (a lamp's hot spot, clutter), not noise; near the point the weak-spot
-      test decides (docs/DETECTION.md, the twenty-sixth round).
+      test decides (docs/DETECTION_ROUNDS.md, the twenty-sixth round).
     """
 
     radius_px: float = 3.0

@@ -100,8 +100,8 @@ ALL_WHITENED_WIDE_MIN = 4
 #: none of the laser-free frames measured (docs/DETECTION.md, "The thirty-eighth round")
 ALL_WHITENED_WIDE_BEAM = 0.3
 #: an option taken on its own evidence within this many ``band_px`` of its beam's image (about
-#: 99 % of true spots: docs/DETECTION.md), with a rescued core on its line at its range, is not
-#: judged alone against the other lasers' leads (:func:`_backed`)
+#: 99 % of true spots: docs/DETECTION_ROUNDS.md), with a rescued core on its line at its range,
+#: is not judged alone against the other lasers' leads (:func:`_backed`)
 BACKED_BEAM = 0.3
 #: two such cores alone are taken when the floor through them holds this many other lasers'
 #: spots (:func:`whitened_pairs`; the floor search, :mod:`.detect`)
