@@ -97,7 +97,7 @@ ALL_WHITENED_WIDE_MIN = 4
 #: … may lie this many ``band_px`` from their beams' images: three times the rig's stated
 #: calibration error, which ALL_WHITENED_BEAM is about (it holds two true cores in three), so
 #: nearly every true core of the four; four glints at one range so near their lines turn up in
-#: none of the laser-free frames measured (docs/DETECTION.md, "The thirty-eighth round")
+#: none of the laser-free frames measured (docs/DETECTION_ROUNDS.md, "The thirty-eighth round")
 ALL_WHITENED_WIDE_BEAM = 0.3
 #: an option taken on its own evidence within this many ``band_px`` of its beam's image (about
 #: 99 % of true spots: docs/DETECTION_ROUNDS.md), with a rescued core on its line at its range,
