@@ -337,35 +337,23 @@ def test_four_whitened_cores_may_lie_farther_from_their_beams_than_three() -> No
     assert all_whitened_value(combo([between, 0.03]), 0.25, 2) is None
 
 
-def test_four_whitened_cores_are_found_on_a_physical_frame(
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    """Seed 2's `clipped_cores` 7 at 1920 x 1080 (a draw no rule was written on): four clipped
-    cores 8-49 x white whose rims read white, two of them 0.107 and 0.115 band_px from their
-    beams' images. All four are found within 0.5 px as whitened cores alone; with the four
-    held to three's line limit, none is."""
-    frame, camera, rig = _physical("clipped_cores", 2, 7)
+@pytest.mark.parametrize(("seed", "index", "narrower"), [(2, 7, ALL_WHITENED_BEAM),
+                                                          (12, 18, 0.15)])
+def test_four_whitened_cores_are_found_on_physical_frames(
+        monkeypatch: pytest.MonkeyPatch, seed: int, index: int, narrower: float) -> None:
+    """Four clipped cores whose rims read white, at one range, on frames of `clipped_cores` at
+    1920 x 1080. Seed 2's 7 (a draw no rule was written on; 8-49 x white): two of them 0.107
+    and 0.115 band_px from their beams' images. Seed 12's 18 (1.68-1.82 m): two 0.205 and 0.22
+    band_px off (the rig's 0.05 degree calibration error is about 0.1 band_px). All four are
+    found within 0.5 px as whitened cores alone; held to a ``narrower`` line limit (three
+    cores' for the first, the previous 0.15 for the second), none is."""
+    frame, camera, rig = _physical("clipped_cores", seed, index)
     res = detect_spots(frame.image_rgb, camera, rig)
     _all_found(frame, res.spots, 0.5)
     taken = [c for c in res.candidates if c.laser is not None]
     assert all("one of 4 such cores on their beams' lines at one range" in c.reason
                for c in taken), [c.reason for c in taken]
-    monkeypatch.setattr(joint, "ALL_WHITENED_WIDE_BEAM", ALL_WHITENED_BEAM)
-    assert detect_spots(frame.image_rgb, camera, rig).spots == ()
-
-
-def test_four_whitened_cores_up_to_three_calibration_errors_off_their_lines_are_taken(
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    """Seed 12's `clipped_cores` 18 at 1920 x 1080: four whitened cores at 1.68-1.82 m, two on
-    their beams' lines and two 0.205 and 0.22 band_px off (the rig's 0.05 degree calibration
-    error is about 0.1 band_px). All four are found within 0.5 px as four such cores; held to
-    the previous limit (0.15 band_px), none is."""
-    frame, camera, rig = _physical("clipped_cores", 12, 18)
-    res = detect_spots(frame.image_rgb, camera, rig)
-    _all_found(frame, res.spots, 0.5)
-    taken = [c for c in res.candidates if c.laser is not None]
-    assert all("one of 4 such cores on their beams' lines at one range" in c.reason
-               for c in taken), [c.reason for c in taken]
-    monkeypatch.setattr(joint, "ALL_WHITENED_WIDE_BEAM", 0.15)
+    monkeypatch.setattr(joint, "ALL_WHITENED_WIDE_BEAM", narrower)
     assert detect_spots(frame.image_rgb, camera, rig).spots == ()
 
 
