@@ -453,12 +453,13 @@ def _reason_kind(reason: str) -> str:
 def run_benchmark(conditions: Sequence[str] | None = None,
                   sizes: Sequence[tuple[int, int]] = DEFAULT_SIZES, per_condition: int = 20,
                   seed: int | Sequence[int] = 0, workers: int = 2, laser_free: bool = False,
-                  cache: Path | None = None
+                  cache: Path | None = None, cache_max_gb: float | None = None
                   ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """(per-image records, per condition x size summary rows, pooled over the draws ``seed``);
     ``laser_free``: also capture every frame without the lasers, to tell how visible each
     missed spot was; ``cache``: keep the rendered frames there, or read them back
-    (:func:`cached_frame`)."""
+    (:func:`cached_frame`), and after the run prune it to ``cache_max_gb`` (None: leave it as
+    it is; 0: drop only other generators' frames) keeping the run's own (:func:`prune_cache`)."""
     names = list(conditions) if conditions else list(CONDITIONS)
     unknown = [c for c in names if c not in CONDITIONS]
     if unknown:
@@ -477,6 +478,8 @@ def run_benchmark(conditions: Sequence[str] | None = None,
     order = {frame_key(j.seed, j.condition, f"{j.width}x{j.height}", j.index): k
              for k, j in enumerate(jobs)}
     records.sort(key=lambda r: order[record_key(r)])
+    if cache is not None and cache_max_gb is not None:
+        _prune_after_run(cache, cache_max_gb, [cache_path(j) for j in jobs])
     return records, summarise(records)
 
 
@@ -606,7 +609,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         ap.error(f"unknown condition(s) {', '.join(unknown)}; known: {', '.join(CONDITIONS)}")
     t0 = time.perf_counter()
     records, rows = run_benchmark(conditions, args.sizes, args.per_condition, args.seed,
-                                  args.workers, args.visibility, args.cache)
+                                  args.workers, args.visibility, args.cache, args.cache_max_gb)
     elapsed = time.perf_counter() - t0
     if args.out is not None:
         args.out.write_text(json.dumps({"targets": TARGETS, "match_px": MATCH_PX,
@@ -630,10 +633,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"against {args.compare}:")
         print("\n".join(compare_records(earlier, records)))
     print(f"{len(records)} images in {elapsed:.0f} s", file=sys.stderr)
-    if args.cache is not None:
-        own = [cache_path(j) for j in run_jobs(conditions, args.sizes, args.per_condition,
-                                               args.seed, args.visibility, args.cache)]
-        _prune_after_run(args.cache, args.cache_max_gb, own)
     return 0
 
 

@@ -399,8 +399,7 @@ def _take_second_look(m: Measure, name: str, value: float, beam: float,
     ``where``: what placed it, in words)."""
     gated = m.rejected is not None
     unread = m.whitened or _reads_unlit(m)  # a laser-coloured one's term is >= LIT_COLOUR
-    colour = (WHITENED_AT_RANGE if m.whitened else COLOURLESS_AT_RANGE.format(term=m.colour.term)
-              if unread else "laser-coloured")
+    colour = _colour_words(m) if unread else "laser-coloured"
     m.terms["clutter"] = CLUTTER_AT_RANGE
     m.range_fit[name] = 1.0
     m.evidence = evidence(m, beam, name)
@@ -410,6 +409,13 @@ def _take_second_look(m: Measure, name: str, value: float, beam: float,
     strength = ("below the clutter gate" if gated else "its clutter term waived")
     m.reason = (f"assigned to {name}: {strength} ({m.clutter_ratio:.2f} × clutter level), "
                 f"{colour}, {where}")
+
+
+def _colour_words(m: Measure) -> str:
+    """How a candidate whose colour reads as not the laser's is named in its reason."""
+    if m.whitened:
+        return WHITENED_AT_RANGE
+    return COLOURLESS_AT_RANGE.format(term=m.colour.term)
 
 
 def whitened_at_floor(rig: Rig, region: SearchRegion, measures: list[Measure],
