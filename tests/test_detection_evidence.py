@@ -18,6 +18,7 @@ from sfm_laserscale.detection import (
     detect_spots,
     joint,
 )
+from sfm_laserscale.detection import detect as detect_module
 from sfm_laserscale.detection.beams import beam_samples, range_along_beam, scene_mask
 from sfm_laserscale.detection.joint import (
     ALL_WHITENED_BEAM,
@@ -25,12 +26,15 @@ from sfm_laserscale.detection.joint import (
     BACKED_BEAM,
     DEPTH,
     PAIRS_TRIED,
+    PLAIN_PAIR_MIN_SCORE,
     RESCUE_BESIDE_ONE_BEAM,
     Option,
     all_whitened_value,
     choose_jointly,
     combination_value,
     depth_term,
+    plain_pair_value,
+    plain_pairs,
     range_term,
     whitened_pairs,
     why_not_rescued,
@@ -378,6 +382,51 @@ def test_two_whitened_cores_on_their_beams_at_one_range_are_a_floor_to_search() 
         {"A": 0, "D": 3}, {"B": 1, "D": 3}, {"A": 0, "B": 1}, {"B": 1, "D": 0}]
     many = {f"L{i}": [core(i, 2.5, 0.0)] for i in range(8)}  # 28 pairs
     assert len(whitened_pairs(many, 0.25)) == PAIRS_TRIED
+
+
+def test_two_faint_candidates_on_their_beams_at_one_range_are_a_floor_to_search() -> None:
+    """Options that are not whitened cores, each too weak to be taken (below min_score) but
+    worth PLAIN_PAIR_MIN_SCORE, make a pair on the whitened pairs' tests of place: on their
+    beams' lines, at one range; whitened cores are left to :func:`whitened_pairs`."""
+    def blob(i: int, score: float, range_m: float, share: float, rescue: float = 0.0) -> Option:
+        return Option(i, score, range_m, rescue=rescue, beam_share=share)
+
+    options = {"A": [blob(0, 0.15, 6.0, 0.03)], "B": [blob(1, 0.19, 6.1, 0.04)],
+               "C": [blob(2, 0.20, 6.0, 0.2)],  # across its band
+               "D": [blob(3, 0.19, 8.0, 0.02),  # another range
+                     blob(4, 0.5 * PLAIN_PAIR_MIN_SCORE, 6.0, 0.01),  # too weak
+                     blob(5, 0.05, 6.0, 0.01, rescue=0.6)]}  # a whitened core
+    pairs = plain_pairs(options)
+    assert [{n: o.index for n, o in p.chosen.items()} for p in pairs] == [{"A": 0, "B": 1}]
+    assert not any(o.rescued for o in pairs[0].chosen.values())
+    assert pairs[0].floor_m == pytest.approx(6.05)
+    far = {"A": blob(0, 0.15, 6.0, 0.03), "B": blob(1, 0.19, 7.2, 0.04)}  # each 9 % off
+    assert plain_pair_value(far) is None
+    many = {f"L{i}": [blob(i, 0.2, 6.0, 0.0)] for i in range(8)}  # 28 pairs
+    assert len(plain_pairs(many)) == PAIRS_TRIED
+
+
+def test_a_faint_pair_whose_floor_holds_another_spot_is_taken_on_a_physical_frame(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Seed 9's `faint_far` 9 at 1920 x 1080 (6 m, 0.4-0.6 x white): nothing reaches
+    min_score, but L2's and L4's spots (scores 0.15 and 0.19, 0.03-0.04 band_px from their
+    lines, 2 % apart in range) are a pair whose floor puts L3's spot within the floor search's
+    radius. The three are found within 1.5 px; needing two more spots, as whitened pairs do,
+    none is."""
+    frame, camera, rig = _physical("faint_far", 9, 9)
+    res = detect_spots(frame.image_rgb, camera, rig)
+    assert {s.laser for s in res.spots} == {"L2", "L3", "L4"}
+    for spot in res.spots:
+        truth = frame.truth[spot.laser]
+        assert truth is not None and math.dist((spot.x, spot.y), truth) < 1.5, spot
+    pair = [c for c in res.candidates if c.laser is not None and "too weak alone" in c.reason]
+    assert sorted(c.laser or "" for c in pair) == ["L2", "L4"], [c.reason for c in pair]
+    assert "L1" in res.missing
+    monkeypatch.setattr(detect_module, "PLAIN_PAIR_FLOOR_SPOTS", 2)
+    res = detect_spots(frame.image_rgb, camera, rig)
+    assert res.spots == ()
+    assert "the floor through the two holds 1 of the 2 other lasers' spots it needs" in (
+        res.missing["L2"] + res.missing["L4"])
 
 
 def test_many_lasers_keep_the_joint_choice_within_its_budget() -> None:

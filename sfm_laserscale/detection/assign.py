@@ -36,6 +36,7 @@ from sfm_laserscale.detection.joint import (
     core_on_line_at,
     depth_term,
     laser_options,
+    plain_pairs,
     range_term,
     whitened_pairs,
     why_not_rescued,
@@ -223,6 +224,9 @@ RESCUED_BESIDE = f"{UNREADABLE_CORE}, at the range of the other lasers' spots"
 RESCUED_ALONE = f"{UNREADABLE_CORE}, one of {{n}} such cores on their beams' lines at one range"
 RESCUED_PAIR = (f"{UNREADABLE_CORE}, one of 2 such cores on their beams' lines at one range, "
                 "where the floor through them holds the other lasers' spots")
+#: why a spot of a pair that is not whitened cores was taken (:func:`.joint.plain_pairs`)
+PLAIN_PAIR = ("too weak alone, on its beam's line at one range with {other}'s candidate, where "
+              "the floor through the two holds {spots}")
 #: … and taken on the second look, on its beam's line (at the other lasers' spots' range)
 WHITENED_AT_RANGE = f"{UNREADABLE_CORE}, on its beam's line"
 #: … and an unclipped blob whose colour reads as not the laser's, taken there too
@@ -258,8 +262,8 @@ def assign_calibrated(
     rig: Rig, region: SearchRegion, valid: list[Measure], options: DetectionOptions
 ) -> tuple[dict[str, int], dict[str, str], F64, list[Choice]]:
     """Laser name -> index into ``valid`` (chosen jointly, :mod:`.joint`); missing reasons;
-    distances; the pairs of whitened cores a floor search may take when nothing was chosen
-    (:func:`.joint.whitened_pairs`)."""
+    distances; the pairs a floor search may take when nothing was chosen: of whitened cores
+    (:func:`.joint.whitened_pairs`), then of other options (:func:`.joint.plain_pairs`)."""
     scores, dist, missing = _laser_scores(rig, region, valid, options)
     opts = {las.name: laser_options(las.name, scores[i], region,
                                     valid, _farther(valid, las.name), MAX_OPTIONS)
@@ -278,7 +282,7 @@ def assign_calibrated(
                 m.not_rescued[name] = why_not_rescued(name, o, choice, options.min_score)
             if m.laser is None and not m.reason and _score(m, 1.0, name) < options.min_score:
                 m.reason = f"score below min_score for {name}"
-    return chosen, missing, dist, whitened_pairs(opts, options.min_score)
+    return chosen, missing, dist, whitened_pairs(opts, options.min_score) + plain_pairs(opts)
 
 
 def second_look(rig: Rig, region: SearchRegion, measures: list[Measure], valid: list[Measure],

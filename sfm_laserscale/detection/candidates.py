@@ -107,6 +107,8 @@ class Measure:
     range_fit: dict[str, float] = field(default_factory=dict)  # laser -> range term (joint.py)
     # laser -> why this whitened core was not taken at its colour (joint.why_not_rescued)
     not_rescued: dict[str, str] = field(default_factory=dict)
+    # laser -> what the floor through a pair holding this candidate held (detect._pair_tried)
+    pair_held: dict[str, str] = field(default_factory=dict)
 
     @property
     def base_score(self) -> float:

@@ -6,9 +6,9 @@ responses (:mod:`.response`), candidates measured, refined and scored (:mod:`.ca
 search where the plane through the spots found meets a missing laser's beam (:mod:`.floor`),
 the other beams searched where a floor through a lone spot puts them (:mod:`.lone`), a lone
 spot's stricter test (:func:`_drop_alone`), in an image where nothing was chosen the
-floor through two whitened cores (:func:`_pair_on_floor`), the chosen spots' centres from both
-of a green laser's signals (:mod:`.centre`) and the reasons for lasers without a spot
-(:mod:`.explain`). Every candidate is returned with what became of it.
+floor through two whitened cores or two faint candidates (:func:`_pair_on_floor`), the chosen
+spots' centres from both of a green laser's signals (:mod:`.centre`) and the reasons for
+lasers without a spot (:mod:`.explain`). Every candidate is returned with what became of it.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sfm_laserscale.detection.assign import (
+    PLAIN_PAIR,
     RESCUED_PAIR,
     WHITENED_FLOOR_REACH,
     WHITENED_FLOOR_SPOTS,
@@ -41,7 +42,12 @@ from sfm_laserscale.detection.floor import (
     floor_search,
 )
 from sfm_laserscale.detection.inputs import check_image, colours_needed, group_rgb
-from sfm_laserscale.detection.joint import NOTHING_BESIDE, PAIR_FLOOR_SPOTS, Choice
+from sfm_laserscale.detection.joint import (
+    NOTHING_BESIDE,
+    PAIR_FLOOR_SPOTS,
+    PLAIN_PAIR_FLOOR_SPOTS,
+    Choice,
+)
 from sfm_laserscale.detection.lone import LONE_PLACE, LONE_TILT_DEG, lone_floor_search
 from sfm_laserscale.detection.options import Candidate, DetectionOptions, DetectionResult
 from sfm_laserscale.detection.response import crop_channels
@@ -133,42 +139,73 @@ def _whitened_on_floor(camera: Camera, rig: Rig, region: SearchRegion, measures:
     return whitened_at_floor(rig, region, measures, valid, chosen, predicted, reach, options)
 
 
-#: what a whitened core's reason adds when the floor through it and another held too few spots
-PAIR_HELD = ("; with {other}'s such core at one range, the floor through the two holds {found} "
-             f"of the {PAIR_FLOOR_SPOTS} other lasers' spots it needs")
+#: what a pair's candidate's reason adds when the floor through the two held too few spots
+#: (``what``: "such core" for whitened cores, "candidate" for others)
+PAIR_HELD = ("; with {other}'s {what} at one range, the floor through the two holds {found} "
+             "of the {spots} it needs")
+
+
+def _other_spots(n: int) -> str:
+    """"1 other laser's spot", "2 other lasers' spots"."""
+    return f"{n} other laser's spot" if n == 1 else f"{n} other lasers' spots"
+
+
+def _spots_needed(pair: Choice) -> int:
+    """How many other lasers' spots the floor through a pair must hold: PAIR_FLOOR_SPOTS for
+    whitened cores, PLAIN_PAIR_FLOOR_SPOTS for others (:mod:`.joint`)."""
+    rescued = any(o.rescued for o in pair.chosen.values())
+    return PAIR_FLOOR_SPOTS if rescued else PLAIN_PAIR_FLOOR_SPOTS
 
 
 def _pair_tried(valid: list[Measure], pair: Choice, found: int,
                 noted: set[tuple[int, str]]) -> None:
-    """In place: the reasons of a pair of whitened cores whose floor held too few spots, for
-    each core (index into ``valid``, laser) not yet in ``noted`` (its first such pair only)."""
+    """In place: the reasons of a pair whose floor held too few spots, for each of its
+    candidates (index into ``valid``, laser) not yet in ``noted`` (its first such pair only):
+    a whitened core's ``not_rescued``, another's ``pair_held``."""
     for name, o in pair.chosen.items():
         other = next(n for n in pair.chosen if n != name)
-        why = valid[o.index].not_rescued
-        if name in why and (o.index, name) not in noted:
-            why[name] += PAIR_HELD.format(other=other, found=found)
-            noted.add((o.index, name))
+        m = valid[o.index]
+        why = m.not_rescued if o.rescued else m.pair_held
+        if (o.index, name) in noted or (o.rescued and name not in why):
+            continue
+        why[name] = why.get(name, "") + PAIR_HELD.format(
+            other=other, what="such core" if o.rescued else "candidate", found=found,
+            spots=_other_spots(_spots_needed(pair)))
+        noted.add((o.index, name))
+
+
+def _take_pair(rig: Rig, region: SearchRegion, valid: list[Measure], dist: NDArray[np.float64],
+               pair: Choice, found: int) -> dict[str, int]:
+    """In place (``valid``): a pair whose floor held enough spots, taken with its reason."""
+    taken = take_choice(rig, region, valid, dist, pair, RESCUED_PAIR)
+    spots = _other_spots(found)
+    for name, o in pair.chosen.items():
+        if not o.rescued:
+            other = next(n for n in pair.chosen if n != name)
+            valid[o.index].reason += ": " + PLAIN_PAIR.format(other=other, spots=spots)
+    return taken
 
 
 def _pair_on_floor(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
                    region: SearchRegion, measures: list[Measure], valid: list[Measure],
                    chosen: dict[str, int], dist: NDArray[np.float64], pairs: list[Choice],
                    options: DetectionOptions) -> dict[str, Measure]:
-    """In place (``chosen``, ``valid``): where nothing was chosen, the first pair of whitened
-    cores (:func:`.joint.whitened_pairs`, best first) through which the floor search finds
-    PAIR_FLOOR_SPOTS other lasers' spots is taken with those spots; the lasers still without
-    one are then searched as after the joint choice. Returns the floor's spots."""
+    """In place (``chosen``, ``valid``): where nothing was chosen, the first pair
+    (:func:`.joint.whitened_pairs`, then :func:`.joint.plain_pairs`, best first) through which
+    the floor search finds the other lasers' spots it needs (:func:`_spots_needed`) is taken
+    with those spots; the lasers still without one are then searched as after the joint
+    choice. Returns the floor's spots."""
     if chosen:
         return {}
     noted: set[tuple[int, str]] = set()
     for pair in pairs:
         trial_valid, trial = list(valid), {n: o.index for n, o in pair.chosen.items()}
         found, _ = _floor_round(image_rgb, camera, rig, region, trial_valid, trial, options)
-        if len(found) < PAIR_FLOOR_SPOTS:
+        if len(found) < _spots_needed(pair):
             _pair_tried(valid, pair, len(found), noted)
             continue
         valid[:] = trial_valid
-        chosen.update(take_choice(rig, region, valid, dist, pair, RESCUED_PAIR) | trial)
+        chosen.update(_take_pair(rig, region, valid, dist, pair, len(found)) | trial)
         more, _ = _floor_then_second_look(image_rgb, camera, rig, region, measures, valid,
                                           chosen, options)
         return found | more

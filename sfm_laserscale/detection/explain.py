@@ -39,7 +39,7 @@ def _line(m: Measure, las: Laser, d: float, band: float, options: DetectionOptio
     if score < options.min_score:
         why = (f"{UNREADABLE_CORE}, not taken at the laser's colour: "
                f"{m.not_rescued[las.name]}" if las.name in m.not_rescued
-               else why_weak(m, beam, las.name))
+               else why_weak(m, beam, las.name) + m.pair_held.get(las.name, ""))
         return (f"{where} score {below(score, options.min_score)} < min_score "
                 f"{options.min_score:g}: {why}")
     return f"{where} score {score:.2f}: {m.reason}"

@@ -42,7 +42,11 @@ each candidate to one laser (:func:`combination_value`):
   most laser-free frames, but not on their beams' lines as well (a laser's spot lies on its
   beam within the rig's calibration error, a glint anywhere across the band). Two such cores
   alone (:func:`whitened_pairs`) are a floor to search the other beams on: they are taken
-  where the search finds PAIR_FLOOR_SPOTS other lasers' spots on it (:mod:`.detect`).
+  where the search finds PAIR_FLOOR_SPOTS other lasers' spots on it (:mod:`.detect`). So are
+  two options that are not whitened cores (:func:`plain_pairs`), each worth
+  PLAIN_PAIR_MIN_SCORE and held to the same tests of place, where the search finds
+  PLAIN_PAIR_FLOOR_SPOTS: faint far spots, each too weak to be taken alone, that sit where
+  one floor puts them.
 - an option taken on its own evidence that no other such option agrees with is judged
   against the other lasers' ranges (their option, else their lead), unless a rescued core of
   its combination backs it (:func:`_backed`): the core on its beam's line at the option's range,
@@ -58,6 +62,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -108,6 +113,14 @@ BACKED_BEAM = 0.3
 PAIR_FLOOR_SPOTS = 2
 #: at most this many pairs of whitened cores are searched for that, best first
 PAIRS_TRIED = 10
+#: two options that are not whitened cores, each worth this much (every evidence term but
+#: range and depth) and on their beams' lines at one range as whitened pairs must be, are a
+#: floor to search the other beams on too (:func:`plain_pairs`)
+PLAIN_PAIR_MIN_SCORE = 0.1
+#: … taken when the floor through them holds this many other lasers' spots: glints are
+#: whitened, so laser-free frames hold no such pairs for one more spot to complete (measured:
+#: docs/DETECTION_ROUNDS.md, "The thirty-ninth round")
+PLAIN_PAIR_FLOOR_SPOTS = 1
 #: why a whitened core was not rescued when no option was taken on its own evidence
 NOTHING_BESIDE = (f"taken only at the range of a spot of another laser, with "
                   f"{ALL_WHITENED_MIN - 1} more such cores on their beams' lines at one range, "
@@ -284,6 +297,17 @@ def combination_value(combo: dict[str, Option], min_score: float,
     return best
 
 
+def _on_lines_at_one_range(opts: list[Option], beam_limit: float) -> float | None:
+    """The median range (m) of options that each lie within ``beam_limit`` × ``band_px`` of
+    their beam's image and all within ALL_WHITENED_RANGE_LN of that range, else None."""
+    if any(o.beam_share > beam_limit or not math.isfinite(o.range_m) for o in opts):
+        return None
+    ref = float(np.median([o.range_m for o in opts]))
+    if any(abs(math.log(o.range_m / ref)) > ALL_WHITENED_RANGE_LN for o in opts):
+        return None
+    return ref
+
+
 def all_whitened_value(combo: dict[str, Option], min_score: float,
                        min_count: int = ALL_WHITENED_MIN) -> tuple[float, Choice] | None:
     """(total value, choice) of a combination of whitened cores alone (every option
@@ -294,12 +318,8 @@ def all_whitened_value(combo: dict[str, Option], min_score: float,
     worth ``min_score`` with its depth term."""
     opts = list(combo.values())
     wide = len(opts) >= ALL_WHITENED_WIDE_MIN
-    beam_limit = ALL_WHITENED_WIDE_BEAM if wide else ALL_WHITENED_BEAM
-    if len(opts) < min_count or any(
-            o.beam_share > beam_limit or not math.isfinite(o.range_m) for o in opts):
-        return None
-    ref = float(np.median([o.range_m for o in opts]))
-    if any(abs(math.log(o.range_m / ref)) > ALL_WHITENED_RANGE_LN for o in opts):
+    ref = _on_lines_at_one_range(opts, ALL_WHITENED_WIDE_BEAM if wide else ALL_WHITENED_BEAM)
+    if len(opts) < min_count or ref is None:
         return None
     depth = _depths(combo)
     values = [o.rescue * depth[n] for n, o in combo.items()]
@@ -316,11 +336,43 @@ def whitened_pairs(options: dict[str, list[Option]], min_score: float) -> list[C
     do not (:mod:`.detect`)."""
     cores = [(n, replace(o, rescued=True)) for n, opts in options.items() for o in opts
              if o.rescue >= min_score]
-    valued = [v for i, (na, a) in enumerate(cores) for nb, b in cores[i + 1:]
-              if na != nb and a.index != b.index
-              and (v := all_whitened_value({na: a, nb: b}, min_score, 2)) is not None]
+    return _best_pairs(cores, lambda pair: all_whitened_value(pair, min_score, 2))
+
+
+def _best_pairs(cands: list[tuple[str, Option]],
+                value: Callable[[dict[str, Option]], tuple[float, Choice] | None]
+                ) -> list[Choice]:
+    """The pairs of two lasers' candidates (laser, option) that ``value`` admits, best total
+    first, at most PAIRS_TRIED; one candidate is never both lasers'."""
+    valued = [v for i, (na, a) in enumerate(cands) for nb, b in cands[i + 1:]
+              if na != nb and a.index != b.index and (v := value({na: a, nb: b})) is not None]
     valued.sort(key=lambda v: -v[0])
     return [choice for _, choice in valued[:PAIRS_TRIED]]
+
+
+def plain_pair_value(combo: dict[str, Option]) -> tuple[float, Choice] | None:
+    """(total value, choice) of two options that are not whitened cores, or None: each within
+    ALL_WHITENED_BEAM × ``band_px`` of its beam's image, both within ALL_WHITENED_RANGE_LN of
+    their median range, each worth PLAIN_PAIR_MIN_SCORE with its depth term."""
+    ref = _on_lines_at_one_range(list(combo.values()), ALL_WHITENED_BEAM)
+    if ref is None:
+        return None
+    depth = _depths(combo)
+    values = [o.score * depth[n] for n, o in combo.items()]
+    if min(values) < PLAIN_PAIR_MIN_SCORE:
+        return None
+    return sum(values), Choice(combo, ref, depth, dict.fromkeys(combo, ref))
+
+
+def plain_pairs(options: dict[str, list[Option]]) -> list[Choice]:
+    """Pairs of two lasers' options that are not whitened cores and pass
+    :func:`plain_pair_value`, best total first, at most PAIRS_TRIED: each is a floor to search
+    the other beams on where nothing was chosen (:mod:`.detect`). Faint far spots, each too
+    weak to be taken alone, sit on their beams' lines at one range; a laser-free frame's blobs
+    that do so are glints, which read whitened (:func:`whitened_pairs`)."""
+    plain = [(n, o) for n, opts in options.items() for o in opts
+             if o.rescue == 0.0 and o.score >= PLAIN_PAIR_MIN_SCORE]
+    return _best_pairs(plain, plain_pair_value)
 
 
 def _alternatives(opts: list[Option], min_score: float) -> list[Option | None]:
