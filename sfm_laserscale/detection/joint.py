@@ -321,11 +321,18 @@ def all_whitened_value(combo: dict[str, Option], min_score: float,
     ref = _on_lines_at_one_range(opts, ALL_WHITENED_WIDE_BEAM if wide else ALL_WHITENED_BEAM)
     if len(opts) < min_count or ref is None:
         return None
+    return _valued_at(combo, ref, lambda o: o.rescue, min_score)
+
+
+def _valued_at(combo: dict[str, Option], ref_m: float, worth: Callable[[Option], float],
+               least: float) -> tuple[float, Choice] | None:
+    """(total value, choice) of options on one floor at range ``ref_m``, each worth
+    ``worth(option)`` with its depth term, or None when one is worth less than ``least``."""
     depth = _depths(combo)
-    values = [o.rescue * depth[n] for n, o in combo.items()]
-    if min(values) < min_score:
+    values = [worth(o) * depth[n] for n, o in combo.items()]
+    if min(values) < least:
         return None
-    return sum(values), Choice(combo, ref, depth, dict.fromkeys(combo, ref))
+    return sum(values), Choice(combo, ref_m, depth, dict.fromkeys(combo, ref_m))
 
 
 def whitened_pairs(options: dict[str, list[Option]], min_score: float) -> list[Choice]:
@@ -357,11 +364,7 @@ def plain_pair_value(combo: dict[str, Option]) -> tuple[float, Choice] | None:
     ref = _on_lines_at_one_range(list(combo.values()), ALL_WHITENED_BEAM)
     if ref is None:
         return None
-    depth = _depths(combo)
-    values = [o.score * depth[n] for n, o in combo.items()]
-    if min(values) < PLAIN_PAIR_MIN_SCORE:
-        return None
-    return sum(values), Choice(combo, ref, depth, dict.fromkeys(combo, ref))
+    return _valued_at(combo, ref, lambda o: o.score, PLAIN_PAIR_MIN_SCORE)
 
 
 def plain_pairs(options: dict[str, list[Option]]) -> list[Choice]:
