@@ -317,9 +317,11 @@ def all_whitened_value(combo: dict[str, Option], min_score: float,
     three), all within ALL_WHITENED_RANGE_LN of their median range (its floor range), and each
     worth ``min_score`` with its depth term."""
     opts = list(combo.values())
+    if len(opts) < min_count:
+        return None
     wide = len(opts) >= ALL_WHITENED_WIDE_MIN
     ref = _on_lines_at_one_range(opts, ALL_WHITENED_WIDE_BEAM if wide else ALL_WHITENED_BEAM)
-    if len(opts) < min_count or ref is None:
+    if ref is None:
         return None
     return _valued_at(combo, ref, lambda o: o.rescue, min_score)
 
