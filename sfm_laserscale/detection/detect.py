@@ -157,19 +157,23 @@ def _spots_needed(pair: Choice) -> int:
     return PAIR_FLOOR_SPOTS if rescued else PLAIN_PAIR_FLOOR_SPOTS
 
 
+def _partner(pair: Choice, name: str) -> str:
+    """The other laser of a pair."""
+    return next(n for n in pair.chosen if n != name)
+
+
 def _pair_tried(valid: list[Measure], pair: Choice, found: int,
                 noted: set[tuple[int, str]]) -> None:
     """In place: the reasons of a pair whose floor held too few spots, for each of its
     candidates (index into ``valid``, laser) not yet in ``noted`` (its first such pair only):
     a whitened core's ``not_rescued``, another's ``pair_held``."""
     for name, o in pair.chosen.items():
-        other = next(n for n in pair.chosen if n != name)
         m = valid[o.index]
         why = m.not_rescued if o.rescued else m.pair_held
         if (o.index, name) in noted or (o.rescued and name not in why):
             continue
         why[name] = why.get(name, "") + PAIR_HELD.format(
-            other=other, what="such core" if o.rescued else "candidate", found=found,
+            other=_partner(pair, name), what="such core" if o.rescued else "candidate", found=found,
             spots=_other_spots(_spots_needed(pair)))
         noted.add((o.index, name))
 
@@ -181,8 +185,8 @@ def _take_pair(rig: Rig, region: SearchRegion, valid: list[Measure], dist: NDArr
     spots = _other_spots(found)
     for name, o in pair.chosen.items():
         if not o.rescued:
-            other = next(n for n in pair.chosen if n != name)
-            valid[o.index].reason += ": " + PLAIN_PAIR.format(other=other, spots=spots)
+            valid[o.index].reason += ": " + PLAIN_PAIR.format(other=_partner(pair, name),
+                                                              spots=spots)
     return taken
 
 
