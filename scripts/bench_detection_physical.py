@@ -22,7 +22,9 @@ spots, detection seconds per image, the misses (image index, laser, the detector
 from ``result.missing``) and the falses. Targets: found >= 99 %, false <= 0.5 %, median <=
 0.15 px, p95 <= 0.5 px. Per size, how the stated σ holds the errors: of the found spots (all
 and per wavelength), and of every reported spot of a laser in view (the found ones and those
-reported beyond 1.5 px, which ``scale`` uses all the same). Each miss records the detector's
+reported beyond 1.5 px, which ``scale`` uses all the same), also per rule that took them
+(``taken_by`` in the found and false records: the detector's ``Candidate.taken_by``). Each
+miss records the detector's
 candidate at its truth (``at_truth``: the nearest within 1.5 px, the test it failed), and a
 line per size counts the misses by it.
 
@@ -200,7 +202,7 @@ def score_frame(frame: Frame, result: Any) -> dict[str, Any]:
                     f["laser"] == laser for f in found):
                 found.append({"laser": laser, "error_px": err, "dx": spot.x - truth[0],
                               "dy": spot.y - truth[1], "score": spot.score,
-                              "sigma_px": spot.sigma_px})
+                              "sigma_px": spot.sigma_px, "taken_by": taken_by(result, spot)})
                 continue
             near = min((math.hypot(spot.x - t[0], spot.y - t[1]) for t in truths.values()),
                        default=math.inf)
@@ -210,7 +212,7 @@ def score_frame(frame: Frame, result: Any) -> dict[str, Any]:
                      else f"{err:.2f} px from its truth"}
             if truth is not None:  # its own laser's spot, off: for _reported_sigma_words
                 false |= {"dx": spot.x - truth[0], "dy": spot.y - truth[1],
-                          "sigma_px": spot.sigma_px}
+                          "sigma_px": spot.sigma_px, "taken_by": taken_by(result, spot)}
             falses.append(false)
     for laser, truth in truths.items():
         if any(f["laser"] == laser for f in found):
@@ -226,6 +228,12 @@ def score_frame(frame: Frame, result: Any) -> dict[str, Any]:
                        "at_truth": candidate_at(result, truth)})
     return {"truths": len(truths), "reported": len(result.spots), "found": found,
             "misses": misses, "falses": falses}
+
+
+def taken_by(result: Any, spot: Any) -> str:
+    """The rule that took a reported spot (its candidate's ``taken_by``), "" when none says."""
+    return next((c.taken_by for c in getattr(result, "candidates", ())
+                 if getattr(c, "laser", None) == spot.laser and getattr(c, "taken_by", "")), "")
 
 
 def candidate_at(result: Any, truth: tuple[float, float]) -> dict[str, Any] | None:
@@ -359,6 +367,14 @@ def _found_with_sigma(recs: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     return [f for r in recs for f in r["found"] if f.get("sigma_px")]
 
 
+def _reported_with_sigma(recs: Sequence[dict[str, Any]]
+                         ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """(every reported spot of a laser in view, those of them reported beyond MATCH_PX): the
+    found spots and a laser's own false spots, whose records carry ``sigma_px``."""
+    off = [f for r in recs for f in r["falses"] if f.get("sigma_px")]
+    return _found_with_sigma(recs) + off, off
+
+
 def _z_and_errors(recs: Sequence[dict[str, Any]]
                   ) -> tuple[NDArray[np.float64], NDArray[np.float64], list[float]]:
     """The found spots' per-axis |error| / σ, per-axis signed errors (px) and stated σ (px)."""
@@ -382,8 +398,7 @@ def _reported_sigma_words(recs: Sequence[dict[str, Any]]) -> str:
     the found spots and a laser's own spots reported beyond MATCH_PX of their truth (their
     false records carry ``sigma_px``). ``scale`` uses a spot whichever it is, so the found
     spots alone (:func:`_sigma_words`) leave out the ones whose σ matters most."""
-    off = [f for r in recs for f in r["falses"] if f.get("sigma_px")]
-    spots = _found_with_sigma(recs) + off
+    spots, off = _reported_with_sigma(recs)
     if not spots:
         return "no spot reported"
     n = len(spots)
@@ -391,10 +406,28 @@ def _reported_sigma_words(recs: Sequence[dict[str, Any]]) -> str:
             f"{_coverage_words(_per_axis_z(spots))}")
 
 
+def _rule_sigma_words(recs: Sequence[dict[str, Any]]) -> list[str]:
+    """Per rule that took them (``taken_by``): how the stated σ holds the errors of the
+    reported spots of a laser in view, found and off, in words."""
+    spots, off = _reported_with_sigma(recs)
+    rules = sorted({f.get("taken_by", "") for f in spots if f.get("taken_by")})
+    lines = []
+    for rule in rules:
+        mine = [f for f in spots if f.get("taken_by") == rule]
+        n_off = sum(1 for f in off if f.get("taken_by") == rule)
+        n = len(mine)
+        lines.append(f"{rule}: {n} spot{'' if n == 1 else 's'} ({n_off} beyond {MATCH_PX:g} px), "
+                     "stated σ "
+                     f"{float(np.median([f['sigma_px'] for f in mine])):.3f} px (median), "
+                     f"{_coverage_words(_per_axis_z(mine))}")
+    return lines
+
+
 def pooled_lines(records: Sequence[dict[str, Any]]) -> list[str]:
     """Per image size: the pooled counts and errors (and each draw's, when the records hold
     several), and the stated σ against the errors for all found spots, for every reported spot
-    of a laser in view, and for the found spots per laser wavelength."""
+    of a laser in view (and per rule that took them), and for the found spots per laser
+    wavelength."""
     lines = []
     for size in dict.fromkeys(r["size"] for r in records):
         recs = [r for r in records if r["size"] == size]
@@ -407,6 +440,7 @@ def pooled_lines(records: Sequence[dict[str, Any]]) -> list[str]:
         lines.append(f"{size} σ, all: {_sigma_words(recs)}")
         lines.append(f"{size} σ, every reported spot of a laser in view: "
                      f"{_reported_sigma_words(recs)}")
+        lines.extend(f"{size} σ, taken by {words}" for words in _rule_sigma_words(recs))
         for nm in sorted({r["wavelength_nm"] for r in recs if r.get("wavelength_nm")}):
             lines.append(f"{size} σ, {nm:g} nm: "
                          f"{_sigma_words([r for r in recs if r.get('wavelength_nm') == nm])}")

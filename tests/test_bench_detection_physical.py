@@ -126,6 +126,29 @@ def test_pooled_lines_per_size_and_wavelength(bench: ModuleType) -> None:
                              "within 3σ 100.0 %, worst 0.0σ")
 
 
+def test_sigma_lines_per_rule_that_took_the_spots(bench: ModuleType) -> None:
+    """A line per rule (``taken_by``) over the found and off spots of that rule; records
+    without one (older runs) add no line."""
+    found = [{"error_px": 0.1, "dx": 0.1, "dy": 0.0, "sigma_px": 0.1, "taken_by": "own evidence"},
+             {"error_px": 0.3, "dx": 0.3, "dy": 0.0, "sigma_px": 0.1, "taken_by": "floor search"},
+             {"error_px": 0.1, "dx": 0.1, "dy": 0.0, "sigma_px": 0.1}]
+    off = [{"laser": "L4", "dx": 2.0, "dy": 0.0, "sigma_px": 1.0, "taken_by": "floor search"}]
+    recs = [{"size": "8x8", "truths": 4, "reported": 4, "found": found, "falses": off}]
+    lines = [ln for ln in bench.pooled_lines(recs) if ", taken by " in ln]
+    # the floor search's axes: 3σ and 0 (found), 2σ and 0 (off)
+    assert lines == [
+        "8x8 σ, taken by floor search: 2 spots (1 beyond 1.5 px), stated σ 0.550 px (median), "
+        "within 1.96σ 50.0 %, within 3σ 100.0 %, worst 3.0σ",
+        "8x8 σ, taken by own evidence: 1 spot (0 beyond 1.5 px), stated σ 0.100 px (median), "
+        "within 1.96σ 100.0 %, within 3σ 100.0 %, worst 1.0σ"]
+
+    class Result:
+        candidates = (SimpleNamespace(laser="L1", taken_by=""),
+                      SimpleNamespace(laser="L1", taken_by="second look"), SimpleNamespace())
+    assert bench.taken_by(Result(), SimpleNamespace(laser="L1")) == "second look"
+    assert bench.taken_by(Result(), SimpleNamespace(laser="L2")) == ""
+
+
 def test_reduced_run_end_to_end(bench: ModuleType) -> None:
     rows = bench.run_small(("clipped_cores", "no_lasers"), (480, 360), per_condition=1)
     assert [r["condition"] for r in rows] == ["clipped_cores", "no_lasers"]

@@ -75,6 +75,9 @@ def test_detect_writes_spots_csv_json_overlays_and_round_trips(tmp_path: Path) -
     record = json.loads((out / "detections.json").read_text())
     assert [im["name"] for im in record["images"]] == list(truth)
     assert all(im["missing"] == {} and im["num_candidates"] >= 2 for im in record["images"])
+    # two clean spots per image, each taken on its own evidence (the rule that took it)
+    assert [s["taken_by"] for im in record["images"] for s in im["spots"]] == [
+        "own evidence"] * 6
     assert record["learned_beam_lines"] is None  # every laser calibrated
     for name in truth:
         overlay = cv2.imread(str(out / "overlays" / (Path(name).stem + ".jpg")))

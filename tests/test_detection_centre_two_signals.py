@@ -174,10 +174,11 @@ def _detect(condition: str, index: int, two_signals: bool,
     rig = rig_from_dict(tomllib.loads(frame.rig_toml))
     # the narrower windows (centre.narrow_window_centre) and, unless asked, the crosstalk
     # centre (centre.crosstalk_centre) off: these frames test the two signals and the clipped
-    # pixels alone
+    # pixels alone; the σ term of the rule that took a spot is off too (the blob's σ is tested)
     opts = DetectionOptions(two_signal_centre=two_signals, narrow_window_ratio=0.0,
                             crosstalk_max_noise_px=DetectionOptions().crosstalk_max_noise_px
-                            if crosstalk else 0.0)
+                            if crosstalk else 0.0, sigma_floor_choice=0.0,
+                            sigma_second_look_choice=0.0)
     res = detect_spots(frame.image_rgb, parse_camera(frame.camera_spec), rig, opts)
     return {s.laser: s for s in res.spots}, frame.truth
 

@@ -166,10 +166,12 @@ def _image_record(name: str, res: DetectionResult | None, review: float,
     if res is None:
         return {"name": name, "readable": False, "reason": reason or "not a readable image",
                 "spots": [], "missing": {}, "num_candidates": 0}
+    rules = {c.laser: c.taken_by for c in res.candidates if c.taken_by}
     return {
         "name": name, "readable": True,
         "spots": [{"laser": s.laser, "x": s.x, "y": s.y, "score": s.score,
-                   "sigma_px": s.sigma_px, "review": s.score < review} for s in res.spots],
+                   "sigma_px": s.sigma_px, "review": s.score < review,
+                   "taken_by": rules.get(s.laser, "")} for s in res.spots],
         "missing": dict(res.missing),
         "near_misses": {laser: [{"x": c.x, "y": c.y, "score": c.score, "source": c.source,
                                  "reason": c.reason, "evidence": dict(c.evidence)}

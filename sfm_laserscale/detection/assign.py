@@ -41,7 +41,7 @@ from sfm_laserscale.detection.joint import (
     whitened_pairs,
     why_not_rescued,
 )
-from sfm_laserscale.detection.options import DetectionOptions
+from sfm_laserscale.detection.options import TAKEN_ON_SECOND_LOOK, DetectionOptions
 from sfm_laserscale.detection.score import below, describe_weakest
 from sfm_laserscale.rig import Rig
 
@@ -409,7 +409,7 @@ def _take_second_look(m: Measure, name: str, value: float, beam: float,
     m.evidence = evidence(m, beam, name)
     if unread:
         m.evidence["colour"] = CLIPPED_COLOUR
-    m.rejected, m.laser, m.score = None, name, value
+    m.rejected, m.laser, m.score, m.taken_by = None, name, value, TAKEN_ON_SECOND_LOOK
     strength = ("below the clutter gate" if gated else "its clutter term waived")
     m.reason = (f"assigned to {name}: {strength} ({m.clutter_ratio:.2f} × clutter level), "
                 f"{colour}, {where}")

@@ -93,6 +93,7 @@ class Measure:
     whitened: bool = False  # a small clipped core whose colour read against it
     second_look: bool = False  # below the clutter gate, measured for the second look
     beside: bool = False  # refined with an overlapping spot's modelled light removed
+    taken_by: str = ""  # the rule that took it as a spot (options.TAKEN_ON_*), "" if none
     sigma_px: float = 1.0
     colour: ColourEvidence = field(default_factory=lambda: ColourEvidence(0.5))
     terms: dict[str, float] = field(default_factory=dict)  # evidence without colour and beam

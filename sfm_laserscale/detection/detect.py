@@ -14,6 +14,7 @@ lasers without a spot (:mod:`.explain`). Every candidate is returned with what b
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,7 +50,13 @@ from sfm_laserscale.detection.joint import (
     Choice,
 )
 from sfm_laserscale.detection.lone import LONE_PLACE, LONE_TILT_DEG, lone_floor_search
-from sfm_laserscale.detection.options import Candidate, DetectionOptions, DetectionResult
+from sfm_laserscale.detection.options import (
+    TAKEN_ON_FLOOR,
+    TAKEN_ON_OWN,
+    Candidate,
+    DetectionOptions,
+    DetectionResult,
+)
 from sfm_laserscale.detection.response import crop_channels
 from sfm_laserscale.detection.score import below
 from sfm_laserscale.memory import trim_heap
@@ -72,12 +79,20 @@ def _measure_candidates(image_rgb: NDArray[np.uint8], rig: Rig, region: SearchRe
     return measures
 
 
-def _candidate(m: Measure) -> Candidate:
+def _candidate(m: Measure, taken: bool) -> Candidate:
+    """What became of a candidate (``taken``: it is a spot)."""
     return Candidate(x=m.x, y=m.y, color=m.color, response=m.response, snr=m.snr,
                      radius_px=m.radius_px, roundness=m.roundness,
                      score=0.0 if m.rejected else float(m.score), laser=m.laser,
                      reason=m.rejected or m.reason, source=m.source,
-                     evidence=tuple(m.evidence.items()), clutter_ratio=m.clutter_ratio)
+                     evidence=tuple(m.evidence.items()), clutter_ratio=m.clutter_ratio,
+                     taken_by=(m.taken_by or TAKEN_ON_OWN) if taken else "")
+
+
+def stated_sigma(m: Measure, options: DetectionOptions, floor_radius: float) -> float:
+    """A taken spot's σ (px, per axis): its blob's, and the term of the rule that took it
+    (:meth:`.options.SigmaModel.choice`; ``floor_radius``: the floor search's radius, px)."""
+    return math.hypot(m.sigma_px, options.sigma_model.choice(m.taken_by, floor_radius))
 
 
 def _floor_round(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region: SearchRegion,
@@ -95,7 +110,7 @@ def _floor_round(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region:
             why[name] = find.why
             continue
         m = find.measure
-        m.score, m.laser = find.score, name
+        m.score, m.laser, m.taken_by = find.score, name, TAKEN_ON_FLOOR
         m.reason = f"assigned to {name}: {PLACE}"
         found[name] = m
         valid.append(m)
@@ -233,6 +248,7 @@ def _lone_floor(image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig, region: 
     place = LONE_PLACE.format(laser=name)
     for laser, (m, score) in found.items():
         m.score, m.laser, m.reason = score, laser, f"assigned to {laser}: {place}"
+        m.taken_by = TAKEN_ON_FLOOR
         valid.append(m)
         chosen[laser] = len(valid) - 1
     more, _ = _floor_round(image_rgb, camera, rig, region, valid, chosen, options)
@@ -296,12 +312,15 @@ def detect_spots(
     taken = {name: valid[j] for name, j in chosen.items()}
     for spot in taken.values():
         centre_chosen(image_rgb, spot, group_rgb(rig, spot.color), options, region.max_radius)
+    reach_px = floor_radius_px(camera, options)
     spots = tuple(
         Spot(laser=name, x=m.x, y=m.y, score=float(np.clip(m.score, 0, 1)),
-             sigma_px=m.sigma_px, source="detected")
+             sigma_px=stated_sigma(m, options, reach_px), source="detected")
         for name in rig.names if (m := taken.get(name)) is not None
     )
-    candidates = tuple(_candidate(m) for m in [*measures, *on_floor.values()])
+    spot_ids = {id(m) for m in taken.values()}
+    candidates = tuple(_candidate(m, id(m) in spot_ids)
+                       for m in [*measures, *on_floor.values()])
     index = {id(m): i for i, m in enumerate(measures)}
     near = {name: tuple(candidates[index[id(m)]] for m in ms) for name, ms in shown.items()}
     logger.debug("%d candidates, %d spots, missing: %s", len(candidates), len(spots), missing)

@@ -7,6 +7,18 @@ from dataclasses import dataclass, field
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.model import Spot
 
+#: which rule took a spot (``Candidate.taken_by``): its own evidence (the joint choice, a whitened
+#: core's rules, a pair), the floor search (through the other spots, or a lone spot's floor)
+#: or the second look (below the clutter gate, or its clutter term waived)
+TAKEN_ON_OWN = "own evidence"
+TAKEN_ON_FLOOR = "floor search"
+TAKEN_ON_SECOND_LOOK = "second look"
+#: what a spot taken by the floor search, or by the second look, adds to its σ per axis, as a
+#: share of the floor search's radius: set so that 95 % of those spots' per-axis errors lie
+#: within 1.96 σ on the physical benchmark (docs/DETECTION.md, "The rule that took a spot")
+FLOOR_CHOICE = 0.2
+SECOND_LOOK_CHOICE = 0.5
+
 
 @dataclass(frozen=True)
 class SigmaModel:
@@ -25,7 +37,10 @@ class SigmaModel:
     centroid shrinks as the spot grows. A spot cut by the image border (fitted by a 2D Gaussian,
     with no wide-window term) adds (window_gain · d)², d (px) the distance from the fit to the
     centroid whose window keeps only pixels mirrored inside the image
-    (:func:`~sfm_laserscale.detection.refine.cut_sigma`).
+    (:func:`~sfm_laserscale.detection.refine.cut_sigma`). A spot taken by the floor search
+    or the second look adds (share · R)², R the floor search's radius (px) and share
+    ``floor_choice`` or ``second_look_choice``: those rules take a maximum beside the spot more
+    often than the first pass does, which the blob's own terms do not see.
     """
 
     floor_px: float = 0.1
@@ -33,11 +48,21 @@ class SigmaModel:
     asymmetry_gain: float = 0.12
     disagreement_gain: float = 0.354
     chroma_px: float = 0.3
+    floor_choice: float = 0.0
+    second_look_choice: float = 0.0
 
     def chroma(self, radius_px: float) -> float:
         """The colour term (px, per axis) of a centre read from colour, for a spot of
         half-maximum radius ``radius_px``."""
         return self.chroma_px / max(1.0, radius_px)
+
+    def choice(self, taken_by: str, floor_radius_px: float) -> float:
+        """The term (px, per axis) of the rule ``taken_by`` that took a spot (0 for a spot
+        taken on its own evidence), in an image whose floor search radius is
+        ``floor_radius_px``."""
+        share = {TAKEN_ON_FLOOR: self.floor_choice,
+                 TAKEN_ON_SECOND_LOOK: self.second_look_choice}.get(taken_by, 0.0)
+        return share * floor_radius_px
 
 
 @dataclass(frozen=True)
@@ -152,6 +177,9 @@ class DetectionOptions:
       noise (:class:`SigmaModel`): a floor (demosaicing, JPEG chroma), light that is not
       point-symmetric about the centre, the distance between two signals' centres, and the
       2 × 2 sampling of colour for a centre read from it.
+    - ``sigma_floor_choice``, ``sigma_second_look_choice``: what a spot taken by the floor
+      search or by the second look adds to its σ, as a share of the floor search's radius
+      (:meth:`SigmaModel.choice`).
     """
 
     min_range_m: float = 0.5
@@ -192,12 +220,15 @@ class DetectionOptions:
     luma_separation_radii: float | None = 3.0
     sigma_disagreement_gain: float = 0.354
     sigma_chroma_px: float = 0.3
+    sigma_floor_choice: float = FLOOR_CHOICE
+    sigma_second_look_choice: float = SECOND_LOOK_CHOICE
 
     @property
     def sigma_model(self) -> SigmaModel:
         """The localisation sigma's terms beyond noise."""
         return SigmaModel(self.sigma_floor_px, self.sigma_window_gain, self.sigma_asymmetry_gain,
-                          self.sigma_disagreement_gain, self.sigma_chroma_px)
+                          self.sigma_disagreement_gain, self.sigma_chroma_px,
+                          self.sigma_floor_choice, self.sigma_second_look_choice)
 
     def __post_init__(self) -> None:
         if not 0.0 < self.min_range_m < self.max_range_m:
@@ -212,7 +243,8 @@ class DetectionOptions:
             raise InputError(f"refine must be 'centroid' or 'gaussian', got {self.refine!r}")
         for name in ("min_clutter_ratio", "second_look_clutter_ratio", "alone_min_score",
                      "sigma_floor_px", "sigma_window_gain", "sigma_asymmetry_gain",
-                     "sigma_disagreement_gain", "sigma_chroma_px", "fit_agree_sigmas",
+                     "sigma_disagreement_gain", "sigma_chroma_px", "sigma_floor_choice",
+                     "sigma_second_look_choice", "fit_agree_sigmas",
                      "narrow_window_ratio", "wide_maximum_ratio", "crosstalk_max_noise_px"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
@@ -249,6 +281,8 @@ class Candidate:
     of the evidence terms in ``evidence`` (name -> value in 0–1: contrast, roundness, clutter,
     colour, beam) of the nearest admissible laser (0 when a test rejected it). ``laser``: the
     laser it was assigned to, or None. ``reason``: "assigned to L1", or the test it failed.
+    ``taken_by``: for a spot, the rule that took it (TAKEN_ON_OWN, TAKEN_ON_FLOOR,
+    TAKEN_ON_SECOND_LOOK); "" for the others.
     """
 
     x: float
@@ -264,6 +298,7 @@ class Candidate:
     source: str = "colour"
     evidence: tuple[tuple[str, float], ...] = ()
     clutter_ratio: float = float("inf")
+    taken_by: str = ""
 
 
 @dataclass(frozen=True)
