@@ -24,9 +24,8 @@ from ``result.missing``) and the falses. Targets: found >= 99 %, false <= 0.5 %,
 and per wavelength), and of every reported spot of a laser in view (the found ones and those
 reported beyond 1.5 px, which ``scale`` uses all the same), also per rule that took them
 (``taken_by`` in the found and false records: the detector's ``Candidate.taken_by``). Each
-miss records the detector's
-candidate at its truth (``at_truth``: the nearest within 1.5 px, the test it failed), and a
-line per size counts the misses by it.
+miss records the detector's candidate at its truth (``at_truth``: the nearest within 1.5 px,
+the test it failed), and a line per size counts the misses by it.
 
 ``--visibility`` also captures every frame without the lasers (same noise draws) and records,
 for each missed spot, how much it changes the photograph (``visible_levels``: the largest
@@ -415,10 +414,9 @@ def _rule_sigma_words(recs: Sequence[dict[str, Any]]) -> list[str]:
     for rule in rules:
         mine = [f for f in spots if f.get("taken_by") == rule]
         n_off = sum(1 for f in off if f.get("taken_by") == rule)
-        n = len(mine)
-        lines.append(f"{rule}: {n} spot{'' if n == 1 else 's'} ({n_off} beyond {MATCH_PX:g} px), "
-                     "stated σ "
-                     f"{float(np.median([f['sigma_px'] for f in mine])):.3f} px (median), "
+        n, sigma = len(mine), float(np.median([f["sigma_px"] for f in mine]))
+        lines.append(f"{rule}: {n} spot{'' if n == 1 else 's'} ({n_off} beyond {MATCH_PX:g} "
+                     f"px), stated σ {sigma:.3f} px (median), "
                      f"{_coverage_words(_per_axis_z(mine))}")
     return lines
 

@@ -89,7 +89,7 @@ def _candidate(m: Measure, taken: bool) -> Candidate:
                      taken_by=(m.taken_by or TAKEN_ON_OWN) if taken else "")
 
 
-def stated_sigma(m: Measure, options: DetectionOptions, floor_radius: float) -> float:
+def _stated_sigma(m: Measure, options: DetectionOptions, floor_radius: float) -> float:
     """A taken spot's σ (px, per axis): its blob's, and the term of the rule that took it
     (:meth:`.options.SigmaModel.choice`; ``floor_radius``: the floor search's radius, px)."""
     return math.hypot(m.sigma_px, options.sigma_model.choice(m.taken_by, floor_radius))
@@ -315,7 +315,7 @@ def detect_spots(
     reach_px = floor_radius_px(camera, options)
     spots = tuple(
         Spot(laser=name, x=m.x, y=m.y, score=float(np.clip(m.score, 0, 1)),
-             sigma_px=stated_sigma(m, options, reach_px), source="detected")
+             sigma_px=_stated_sigma(m, options, reach_px), source="detected")
         for name in rig.names if (m := taken.get(name)) is not None
     )
     spot_ids = {id(m) for m in taken.values()}
