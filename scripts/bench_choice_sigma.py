@@ -24,6 +24,8 @@ from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
+from bench_detection_physical import _seeds
+
 from sfm_laserscale.detection import DetectionOptions
 from sfm_laserscale.pipeline_folders import GivenInputs, resolve_scale_inputs
 from sfm_laserscale.run_types import ScaleOptions
@@ -58,13 +60,6 @@ def pooled_words(pairs: Sequence[tuple[float, float]]) -> str:
     rms_z = math.sqrt(sum((e / s) ** 2 for e, s in pairs) / len(pairs))
     return (f"median |error| {statistics.median(abs(e) for e in errs):.3f} %, RMS {rms:.3f} %, "
             f"largest {max(abs(e) for e in errs):.3f} %, RMS error/σ {rms_z:.2f}")
-
-
-def _seeds(text: str) -> list[int]:
-    if "-" in text:
-        lo, hi = text.split("-")
-        return list(range(int(lo), int(hi) + 1))
-    return [int(t) for t in text.split(",")]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
