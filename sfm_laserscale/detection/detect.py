@@ -312,10 +312,10 @@ def detect_spots(
     taken = {name: valid[j] for name, j in chosen.items()}
     for spot in taken.values():
         centre_chosen(image_rgb, spot, group_rgb(rig, spot.color), options, region.max_radius)
-    reach_px = floor_radius_px(camera, options)
+    floor_radius = floor_radius_px(camera, options)
     spots = tuple(
         Spot(laser=name, x=m.x, y=m.y, score=float(np.clip(m.score, 0, 1)),
-             sigma_px=_stated_sigma(m, options, reach_px), source="detected")
+             sigma_px=_stated_sigma(m, options, floor_radius), source="detected")
         for name in rig.names if (m := taken.get(name)) is not None
     )
     spot_ids = {id(m) for m in taken.values()}
