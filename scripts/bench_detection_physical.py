@@ -44,6 +44,14 @@ never. ``--compare earlier.json`` (an
 ``--out`` file of an earlier run of the same frames) prints, frame by frame, the spots found,
 lost or moved and the false spots gained or dropped.
 
+``--scene-reference SHIFT,BLUR,GAIN`` gives the detector a scene reference of every frame
+(``detect_spots(..., scene_rgb=)``, docs/DETECTION.md "A scene reference"): the generator's
+capture of the seafloor alone (``render_frame(..., scene_reference=True)``: no lasers, hot
+spots or particles; its own noise) as a model image warped into the frame through the mesh
+would show it (:func:`as_rendered`): shifted SHIFT px in a random direction (registration
+and mesh error), blurred by a Gaussian of BLUR px (resampling, the texture's resolution) and
+lit by a gain ramp of ±GAIN across the frame (lamps elsewhere).
+
 ``run_benchmark`` (and ``run_small``, a reduced set for tests) can be imported through
 ``tests/script_loader.py``.
 """
@@ -65,10 +73,11 @@ import time
 import tomllib
 from collections import Counter
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -84,6 +93,16 @@ DEFAULT_SIZES = ((1920, 1080), (4000, 3000))
 
 
 @dataclass(frozen=True)
+class SceneReference:
+    """How a scene reference rendered from the model differs from the seafloor it shows
+    (:func:`as_rendered`): shift (px, random direction), Gaussian blur (px), gain ramp (±)."""
+
+    shift_px: float = 0.5
+    blur_px: float = 0.7
+    gain: float = 0.1
+
+
+@dataclass(frozen=True)
 class Job:
     """One image of the benchmark."""
 
@@ -96,6 +115,7 @@ class Job:
     size_index: int
     laser_free: bool = False  # also capture it without the lasers (visibility of misses)
     cache: str | None = None  # folder of rendered frames (:func:`cached_frame`)
+    scene: SceneReference | None = None  # give the detector a scene reference (as_rendered)
 
     def rng(self) -> np.random.Generator:
         """The frame's own generator (reproducible, independent of the other frames)."""
@@ -126,7 +146,8 @@ def cache_path(job: Job) -> Path:
     if job.cache is None:
         raise ValueError("the job has no cache folder")
     name = (f"s{job.seed}_{job.condition}_{job.width}x{job.height}_z{job.size_index}"
-            f"_{job.index:03d}{'_lf' if job.laser_free else ''}.pkl")
+            f"_{job.index:03d}{'_lf' if job.laser_free else ''}"
+            f"{'_sc' if job.scene is not None else ''}.pkl")
     return Path(job.cache) / generator_version() / name
 
 
@@ -140,7 +161,8 @@ def cached_frame(job: Job) -> Frame:
         with contextlib.suppress(OSError):  # a read-only cache is read all the same
             os.utime(path)  # used now: the pruning keeps the recently used frames
         return cached
-    frame = render_frame(job.condition, job.width, job.height, job.rng(), job.laser_free)
+    frame = render_frame(job.condition, job.width, job.height, job.rng(), job.laser_free,
+                         scene_reference=job.scene is not None)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         partial = path.with_suffix(f".{multiprocessing.current_process().pid}.part")
@@ -151,10 +173,34 @@ def cached_frame(job: Job) -> Frame:
 
 
 def run_jobs(conditions: Sequence[str], sizes: Sequence[tuple[int, int]], per_condition: int,
-             seeds: Sequence[int], laser_free: bool, cache: Path | None) -> list[Job]:
-    """All images of a run over the draws ``seeds``, each job carrying the cache folder."""
-    return [replace(j, cache=None if cache is None else str(cache))
+             seeds: Sequence[int], laser_free: bool, cache: Path | None,
+             scene: SceneReference | None = None) -> list[Job]:
+    """All images of a run over the draws ``seeds``, each job carrying the cache folder and
+    the scene reference's description."""
+    return [replace(j, cache=None if cache is None else str(cache), scene=scene)
             for s in seeds for j in jobs_for(conditions, sizes, per_condition, s, laser_free)]
+
+
+def as_rendered(scene_rgb: NDArray[np.uint8], how: SceneReference,
+                rng: np.random.Generator) -> NDArray[np.float32]:
+    """The seafloor's capture (H, W, 3 uint8) as a render from the model would give it:
+    shifted ``how.shift_px`` in a direction drawn from ``rng`` (bilinear), blurred, and
+    multiplied by a linear ramp from 1 - ``how.gain`` to 1 + ``how.gain`` across the frame
+    in a drawn direction. Float 8-bit levels, as ``detect_spots(scene_rgb=)`` takes them."""
+    height, width = scene_rgb.shape[:2]
+    angle = rng.uniform(0.0, 2.0 * math.pi)
+    shift = np.array([[1.0, 0.0, how.shift_px * math.cos(angle)],
+                      [0.0, 1.0, how.shift_px * math.sin(angle)]], dtype=np.float32)
+    out = cv2.warpAffine(scene_rgb.astype(np.float32), shift, (width, height),
+                         flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    if how.blur_px > 0:
+        out = cv2.GaussianBlur(out, (0, 0), how.blur_px, borderType=cv2.BORDER_REFLECT)
+    ramp_angle = rng.uniform(0.0, 2.0 * math.pi)
+    rows, cols = np.mgrid[0:height, 0:width].astype(np.float32)
+    along = ((cols / width - 0.5) * math.cos(ramp_angle)
+             + (rows / height - 0.5) * math.sin(ramp_angle))  # within ±sqrt(0.5)
+    gain = 1.0 + how.gain * along / np.float32(math.sqrt(0.5))
+    return (out * gain[..., None]).astype(np.float32)
 
 
 def prune_cache(cache: Path, max_bytes: int, keep: Iterable[Path]) -> tuple[int, int]:
@@ -269,7 +315,12 @@ def run_job(job: Job) -> dict[str, Any]:
     t1 = time.perf_counter()
     camera = parse_camera(frame.camera_spec)
     rig = rig_from_dict(tomllib.loads(frame.rig_toml))
-    result = detect_spots(frame.image_rgb, camera, rig, DetectionOptions())
+    scene_rgb = None
+    if job.scene is not None and frame.image_scene_rgb is not None:
+        scene_rng = np.random.default_rng([job.seed, job.condition_index, job.size_index,
+                                           job.index, 7])
+        scene_rgb = as_rendered(frame.image_scene_rgb, job.scene, scene_rng)
+    result = detect_spots(frame.image_rgb, camera, rig, DetectionOptions(), scene_rgb=scene_rgb)
     t2 = time.perf_counter()
     rec = score_frame(frame, result)
     rec.update({"seed": job.seed, "condition": job.condition,
@@ -485,19 +536,21 @@ def _reason_kind(reason: str) -> str:
 def run_benchmark(conditions: Sequence[str] | None = None,
                   sizes: Sequence[tuple[int, int]] = DEFAULT_SIZES, per_condition: int = 20,
                   seed: int | Sequence[int] = 0, workers: int = 2, laser_free: bool = False,
-                  cache: Path | None = None, cache_max_gb: float | None = None
+                  cache: Path | None = None, cache_max_gb: float | None = None,
+                  scene: SceneReference | None = None
                   ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """(per-image records, per condition x size summary rows, pooled over the draws ``seed``);
     ``laser_free``: also capture every frame without the lasers, to tell how visible each
     missed spot was; ``cache``: keep the rendered frames there, or read them back
     (:func:`cached_frame`), and after the run prune it to ``cache_max_gb`` (None: leave it as
-    it is; 0: drop only other generators' frames) keeping the run's own (:func:`prune_cache`)."""
+    it is; 0: drop only other generators' frames) keeping the run's own (:func:`prune_cache`);
+    ``scene``: give the detector a scene reference of every frame, as described there."""
     names = list(conditions) if conditions else list(CONDITIONS)
     unknown = [c for c in names if c not in CONDITIONS]
     if unknown:
         raise ValueError(f"unknown condition(s) {unknown}; known: {list(CONDITIONS)}")
     seeds = [seed] if isinstance(seed, int) else list(seed)
-    jobs = run_jobs(names, sizes, per_condition, seeds, laser_free, cache)
+    jobs = run_jobs(names, sizes, per_condition, seeds, laser_free, cache, scene)
     if workers > 1 and len(jobs) > 1:
         pool = multiprocessing.get_context("fork").Pool(workers)
         try:
@@ -557,9 +610,11 @@ def compare_records(old: Sequence[dict[str, Any]], new: Sequence[dict[str, Any]]
 
 def run_small(conditions: Sequence[str] = ("clipped_cores", "no_lasers"),
               size: tuple[int, int] = (640, 480), per_condition: int = 1,
-              seed: int = 0, laser_free: bool = False) -> list[dict[str, Any]]:
+              seed: int = 0, laser_free: bool = False,
+              scene: SceneReference | None = None) -> list[dict[str, Any]]:
     """A reduced benchmark (small images, one process) for tests: summary rows."""
-    return run_benchmark(conditions, (size,), per_condition, seed, 1, laser_free)[1]
+    return run_benchmark(conditions, (size,), per_condition, seed, 1, laser_free,
+                         scene=scene)[1]
 
 
 def _fmt(value: float | None, digits: int = 2) -> str:
@@ -611,6 +666,18 @@ def _seeds(text: str) -> list[int]:
     return seeds
 
 
+def _scene_reference(text: str) -> SceneReference:
+    """``SHIFT,BLUR,GAIN`` (px, px, ±) as a :class:`SceneReference`."""
+    try:
+        shift, blur, gain = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"not SHIFT,BLUR,GAIN (three numbers): {text!r}") from None
+    if min(shift, blur, gain) < 0:
+        raise argparse.ArgumentTypeError(f"SHIFT, BLUR and GAIN must be >= 0: {text!r}")
+    return SceneReference(shift, blur, gain)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line entry point."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -632,6 +699,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--cache-max-gb", type=float, default=40.0,
                     help="after the run, prune the cache to this size, least recently used "
                          "frames first, the run's own kept (default 40; 0: no limit)")
+    ap.add_argument("--scene-reference", type=_scene_reference, default=None,
+                    metavar="SHIFT,BLUR,GAIN",
+                    help="give the detector a scene reference of every frame, shifted SHIFT px, "
+                         "blurred BLUR px, lit by a ramp of ±GAIN (e.g. 0.5,0.7,0.1)")
     ap.add_argument("--compare", type=Path, default=None,
                     help="an earlier run's --out file: print what changed, frame by frame")
     args = ap.parse_args(argv)
@@ -641,11 +712,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         ap.error(f"unknown condition(s) {', '.join(unknown)}; known: {', '.join(CONDITIONS)}")
     t0 = time.perf_counter()
     records, rows = run_benchmark(conditions, args.sizes, args.per_condition, args.seed,
-                                  args.workers, args.visibility, args.cache, args.cache_max_gb)
+                                  args.workers, args.visibility, args.cache, args.cache_max_gb,
+                                  args.scene_reference)
     elapsed = time.perf_counter() - t0
     if args.out is not None:
+        scene = None if args.scene_reference is None else asdict(args.scene_reference)
         args.out.write_text(json.dumps({"targets": TARGETS, "match_px": MATCH_PX,
-                                        "seeds": args.seed, "summary": rows,
+                                        "seeds": args.seed, "scene_reference": scene,
+                                        "summary": rows,
                                         "images": records}, indent=1, default=str))
     if args.markdown:
         print(markdown_table(rows))

@@ -273,6 +273,9 @@ def mesh(**kw: Any) -> int:
 @click.option("--out", required=True, type=_path, help="Output folder (created).")
 @click.option("--model", type=_path, help="Take the camera from this model (matched by size).")
 @click.option("--camera", help='Camera as "MODEL W H params...", e.g. "PINHOLE W H fx fy cx cy".')
+@click.option("--scene", type=_path,
+              help="Folder of scene references: <stem>.png/.tif per image, the same view "
+                   "without the lasers (RGBA: alpha 0 where unknown); their texture is removed.")
 @click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
 @common_options
 def detect(**kw: Any) -> int:
@@ -280,7 +283,7 @@ def detect(**kw: Any) -> int:
     from sfm_laserscale.commands.detect import DetectInputs, run
 
     inputs = DetectInputs(images=tuple(kw["images"]), rig=kw["rig"], model=kw["model"],
-                          camera=kw["camera"])
+                          camera=kw["camera"], scene=kw["scene"])
     result = run(inputs, kw["out"], overwrite=kw["overwrite"])
     click.echo(result.summary)
     return EXIT_OK if result.success else EXIT_NO_SCALE

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from types import ModuleType, SimpleNamespace
@@ -311,3 +313,42 @@ def test_a_cached_frame_read_back_counts_as_used(bench: ModuleType, tmp_path: Pa
     os.utime(path, (1e9, 1e9))
     bench.cached_frame(job)  # read back
     assert path.stat().st_mtime > 1e9 + 1e6
+
+
+def test_a_scene_reference_as_a_render_from_the_model(bench: ModuleType, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """``as_rendered`` shifts, blurs and relights the seafloor's capture as described; with
+    ``--scene-reference`` each frame is rendered with its seafloor alone (the frame itself
+    unchanged) and the detector is given it."""
+    rows, cols = np.mgrid[0:60, 0:80]
+    ramp = np.repeat((2 * cols + rows).astype(np.uint8)[..., None], 3, axis=2)
+    rng = np.random.default_rng(0)
+    same = bench.as_rendered(ramp, bench.SceneReference(0.0, 0.0, 0.0), rng)
+    assert same.dtype == np.float32
+    np.testing.assert_array_equal(same, ramp)
+    shifted = bench.as_rendered(ramp, bench.SceneReference(1.0, 0.0, 0.0), rng)
+    step = shifted[10:50, 10:70, 0] - ramp[10:50, 10:70, 0]  # -(2 dx + dy), |d| = 1
+    assert np.allclose(step, step[0, 0], atol=1e-3) and 0.9 < abs(step[0, 0]) <= math.sqrt(5)
+    lit = bench.as_rendered(np.full((60, 80, 3), 100, np.uint8),
+                            bench.SceneReference(0.0, 0.0, 0.1), rng)
+    assert 89.9 < lit.min() < 95.0 and 105.0 < lit.max() < 110.1
+    args = ["--sizes", "320x240", "--conditions", "clipped_cores", "--per-condition", "1",
+            "--workers", "1", "--cache", str(tmp_path / "frames")]
+    plain, scene = tmp_path / "plain.json", tmp_path / "scene.json"
+    assert bench.main([*args, "--out", str(plain)]) == 0
+    assert bench.main([*args, "--out", str(scene), "--scene-reference", "0.5,0.7,0.1"]) == 0
+    saved = json.loads(scene.read_text())
+    assert saved["scene_reference"] == {"shift_px": 0.5, "blur_px": 0.7, "gain": 0.1}
+    assert json.loads(plain.read_text())["scene_reference"] is None
+    assert sorted(p.name for p in (tmp_path / "frames").glob("*/*.pkl")) == [
+        "s0_clipped_cores_320x240_z0_000.pkl", "s0_clipped_cores_320x240_z0_000_sc.pkl"]
+    job = bench.jobs_for(["clipped_cores"], [(320, 240)], 1, 0)[0]
+    with_scene = bench.cached_frame(replace(job, cache=str(tmp_path / "frames"),
+                                            scene=bench.SceneReference()))
+    alone = bench.cached_frame(job)
+    np.testing.assert_array_equal(with_scene.image_rgb, alone.image_rgb)
+    assert with_scene.image_scene_rgb is not None and alone.image_scene_rgb is None
+    capsys.readouterr()
+    for bad in ("0.5,0.7", "0.5,-1,0.1"):
+        with pytest.raises(SystemExit):
+            bench.main([*args, "--scene-reference", bad])

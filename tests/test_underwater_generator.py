@@ -321,3 +321,18 @@ def test_srgb_decode_inverts_srgb_encode() -> None:
     from sfm_laserscale.synthetic.underwater.sensor import srgb_decode, srgb_encode
     lin = np.linspace(0.0, 1.0, 101, dtype=np.float32)
     np.testing.assert_allclose(srgb_decode(srgb_encode(lin)), lin, atol=1e-6)
+
+
+def test_the_scene_reference_is_the_seafloor_alone() -> None:
+    """``scene_reference=True`` leaves the frame as it was and captures the seafloor without
+    the lamp's hot spot: the photograph is brighter than it where the hot spot is aimed."""
+    args = ("strobe_hotspots", 480, 360)
+    plain = render_frame(*args, np.random.default_rng(4))
+    frame = render_frame(*args, np.random.default_rng(4), scene_reference=True)
+    np.testing.assert_array_equal(frame.image_rgb, plain.image_rgb)
+    assert plain.image_scene_rgb is None and frame.image_scene_rgb is not None
+    excess = frame.image_rgb.astype(float).mean(axis=2) - frame.image_scene_rgb.mean(axis=2)
+    rows, cols = np.mgrid[0:360, 0:480]
+    (x, y), *_ = frame.meta["hotspot_aims_px"]
+    near = np.hypot(cols - x, rows - y) < 15
+    assert near.any() and excess[near].mean() > excess[~near].mean() + 20.0

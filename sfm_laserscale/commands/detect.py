@@ -7,6 +7,11 @@ Writes (atomically: a staged folder replaces ``DIR`` only when everything is wri
                               missing lasers with reasons, candidate count; learned beam lines
     DIR/overlays/<stem>.jpg   spots and scores, beam lines and their search bands
 
+With a folder of scene references (``DetectInputs.scene``: ``<stem>.png`` or ``.tif`` per
+laser image, the same view without the lasers, aligned pixel for pixel, RGBA alpha 0 where
+unknown), each image is searched with its reference's texture removed
+(:mod:`sfm_laserscale.detection.scene`); an image without one is searched as it is.
+
 When the rig has uncalibrated lasers and at least ``min_images_for_lines`` images are given,
 their beam lines are learned from all images first (:mod:`sfm_laserscale.detection.beam_lines`) and
 searched like calibrated beams.
@@ -36,7 +41,13 @@ from sfm_laserscale.detection.beam_lines import (
     rig_with_learned_lines,
 )
 from sfm_laserscale.errors import InputError
-from sfm_laserscale.io.images import LaserImage, damage, find_laser_images, read_rgb
+from sfm_laserscale.io.images import (
+    LaserImage,
+    damage,
+    find_laser_images,
+    read_rgb,
+    read_scene_reference,
+)
 from sfm_laserscale.io.models import load_model
 from sfm_laserscale.io.outputs import check_output_dir, staged_output_dir
 from sfm_laserscale.io.spots_csv import write_spots_csv
@@ -57,6 +68,7 @@ class DetectInputs:
     rig: Path
     model: Path | None = None
     camera: str | None = None  # "PINHOLE W H fx fy cx cy" (any COLMAP model name and params)
+    scene: Path | None = None  # folder of scene references, <stem>.png / .tif per image
 
 
 @dataclass(frozen=True)
@@ -123,11 +135,18 @@ def _camera_model(inputs: DetectInputs) -> SparseModel:
 
 @dataclass(frozen=True)
 class Frame:
-    """One image to detect in: its name, camera and a loader of its (H, W, 3) uint8 RGB."""
+    """One image to detect in: its name, camera, a loader of its (H, W, 3) uint8 RGB and
+    of its scene reference ((H, W, 3) float32, NaN where unknown; None: no reference)."""
 
     name: str
     camera: Camera
     load: Callable[[], NDArray[np.uint8]]
+    load_scene: Callable[[], NDArray[np.float32]] | None = None
+
+    def detect(self, rig: Rig, options: DetectionOptions) -> DetectionResult:
+        """The detector's result on this frame (with its scene reference if it has one)."""
+        scene = None if self.load_scene is None else self.load_scene()
+        return detect_spots(self.load(), self.camera, rig, options, scene_rgb=scene)
 
 
 @dataclass(frozen=True)
@@ -143,7 +162,7 @@ class ManyResult:
 def detect_many(frames: Sequence[Frame], rig: Rig, options: DetectRunOptions) -> ManyResult:
     """Detect in every frame; learn beam lines first when the rig has uncalibrated lasers."""
     d = options.detection
-    first = {f.name: detect_spots(f.load(), f.camera, rig, d) for f in frames}
+    first = {f.name: f.detect(rig, d) for f in frames}
     if all(las.calibrated for las in rig.lasers) or len(frames) < options.min_images_for_lines:
         return ManyResult(first, None, rig)
     cands = [image_candidates(first[f.name], f.camera) for f in frames]
@@ -154,21 +173,23 @@ def detect_many(frames: Sequence[Frame], rig: Rig, options: DetectRunOptions) ->
             res.missing.update(learned.missing)
         return ManyResult(first, learned, rig)
     search_rig = rig_with_learned_lines(rig, learned, d.min_range_m, d.max_range_m)
-    second = {f.name: detect_spots(f.load(), f.camera, search_rig, d) for f in frames}
+    second = {f.name: f.detect(search_rig, d) for f in frames}
     for res in second.values():
         res.missing.update(learned.missing)
     return ManyResult(second, learned, search_rig)
 
 
 def _image_record(name: str, res: DetectionResult | None, review: float,
-                  reason: str | None = None) -> dict[str, Any]:
-    """detections.json entry of one image (``reason``: why an image was not searched)."""
+                  reason: str | None = None, scene: Path | None = None) -> dict[str, Any]:
+    """detections.json entry of one image (``reason``: why an image was not searched;
+    ``scene``: its scene reference, if it was searched with one)."""
     if res is None:
         return {"name": name, "readable": False, "reason": reason or "not a readable image",
                 "spots": [], "missing": {}, "num_candidates": 0}
     rules = {c.laser: c.taken_by for c in res.candidates if c.taken_by}
     return {
         "name": name, "readable": True,
+        "scene_reference": None if scene is None else str(scene),
         "spots": [{"laser": s.laser, "x": s.x, "y": s.y, "score": s.score,
                    "sigma_px": s.sigma_px, "review": s.score < review,
                    "taken_by": rules.get(s.laser, "")} for s in res.spots],
@@ -231,6 +252,38 @@ def _damaged(images: Sequence[LaserImage]) -> dict[str, str]:
     return found
 
 
+SCENE_SUFFIXES = (".png", ".tif", ".tiff")
+
+
+def scene_references(folder: Path | None, images: Sequence[LaserImage]) -> dict[str, Path]:
+    """Image name -> its scene reference in ``folder`` (``<stem>.png``/``.tif``/``.tiff``);
+    images without one are left out. InputError when the folder is missing or matches none."""
+    if folder is None:
+        return {}
+    if not folder.is_dir():
+        raise InputError("the scene reference folder does not exist", folder)
+    found = {}
+    for li in images:
+        stem = Path(li.name).stem
+        path = next((p for s in SCENE_SUFFIXES if (p := folder / (stem + s)).is_file()), None)
+        if path is not None:
+            found[li.name] = path
+    if images and not found:
+        raise InputError("no scene reference matches a laser image (<stem>"
+                         f"{'/'.join(SCENE_SUFFIXES)})", folder)
+    return found
+
+
+def _read_scene(path: Path, camera: Camera) -> NDArray[np.float32]:
+    """A laser image's scene reference, refused (InputError naming it) unless it has the
+    image's size."""
+    scene = read_scene_reference(path)
+    if scene.shape[:2] != (camera.height, camera.width):
+        raise InputError(f"the scene reference is {scene.shape[1]}x{scene.shape[0]} px but "
+                         f"its laser image's camera is {camera.width}x{camera.height} px", path)
+    return scene
+
+
 def run(inputs: DetectInputs, out_dir: Path | None,
         options: DetectRunOptions = DetectRunOptions(),  # noqa: B008 (frozen)
         overwrite: bool = False) -> DetectRunResult:
@@ -241,14 +294,18 @@ def run(inputs: DetectInputs, out_dir: Path | None,
     rig = load_rig(inputs.rig)
     images = find_laser_images(list(inputs.images), _camera_model(inputs))
     damaged = _damaged(images)
-    frames = [Frame(li.name, li.camera, functools.partial(read_rgb, li.path, check=False))
+    scenes = scene_references(inputs.scene, images)
+    frames = [Frame(li.name, li.camera, functools.partial(read_rgb, li.path, check=False),
+                    None if li.name not in scenes
+                    else functools.partial(_read_scene, scenes[li.name], li.camera))
               for li in images if li.camera is not None and li.name not in damaged]
     many = detect_many(frames, rig, options)
     results, learned, search_rig = many.results, many.learned, many.search_rig
     spots = {li.name: results[li.name].spots for li in images if li.name in results}
     review = sum(s.score < options.review_score for v in spots.values() for s in v)
     record = {"images": [_image_record(li.name, results.get(li.name), options.review_score,
-                                       damaged.get(li.name)) for li in images],
+                                       damaged.get(li.name), scenes.get(li.name))
+                         for li in images],
               "learned_beam_lines": _lines_record(learned),
               "review_score": options.review_score}
     if out_dir is not None:

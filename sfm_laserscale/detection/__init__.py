@@ -3,7 +3,8 @@
 The stages, in data-flow order: :mod:`.beams` (where to look), :mod:`.response` (colour and
 brightness responses), :mod:`.candidates` with :mod:`.shape`, :mod:`.refine` and :mod:`.score`
 (candidates measured, refined, scored), :mod:`.assign` (spots to lasers) and :mod:`.explain`
-(why a laser has no spot); :mod:`.detect` chains them. docs/DETECTION.md has the benchmark.
+(why a laser has no spot); :mod:`.detect` chains them, first removing the texture of a scene
+reference when one is given (:mod:`.scene`). docs/DETECTION.md has the benchmark.
 """
 
 from sfm_laserscale.detection.assign import UNCALIBRATED_REASON

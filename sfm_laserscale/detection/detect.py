@@ -58,6 +58,7 @@ from sfm_laserscale.detection.options import (
     DetectionResult,
 )
 from sfm_laserscale.detection.response import crop_channels
+from sfm_laserscale.detection.scene import remove_scene
 from sfm_laserscale.detection.score import below
 from sfm_laserscale.memory import trim_heap
 from sfm_laserscale.model import Camera, Spot
@@ -284,9 +285,14 @@ def _drop_alone(rig: Rig, valid: list[Measure], chosen: dict[str, int], unseen: 
 def detect_spots(
     image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
     options: DetectionOptions = DetectionOptions(),  # noqa: B008 (frozen dataclass)
+    scene_rgb: NDArray[np.floating] | None = None,
 ) -> DetectionResult:
-    """Detect laser spots in one image and assign them to the rig's lasers."""
+    """Detect laser spots in one image and assign them to the rig's lasers; with
+    ``scene_rgb`` (the same view without the lasers, (H, W, 3) float 8-bit levels, NaN where
+    unknown) on the image with that scene's texture removed (:mod:`.scene`)."""
     check_image(image_rgb, camera)
+    if scene_rgb is not None:
+        image_rgb = remove_scene(image_rgb, scene_rgb, options.scene_texture_sigma_px)
     region = search_region(camera, rig, options)
     measures = _measure_candidates(image_rgb, rig, region, options)
     trim_heap()  # the detection planes (~16 bytes per pixel) go back to the OS

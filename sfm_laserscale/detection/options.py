@@ -180,6 +180,9 @@ class DetectionOptions:
     - ``sigma_floor_choice``, ``sigma_second_look_choice``: what a spot taken by the floor
       search or by the second look adds to its σ, as a share of the floor search's radius
       (:meth:`SigmaModel.choice`).
+    - ``scene_texture_sigma_px``: with a scene reference (``detect_spots(..., scene_rgb=)``),
+      its texture finer than this Gaussian sigma is subtracted from the image before
+      detection (:mod:`.scene`).
     """
 
     min_range_m: float = 0.5
@@ -222,6 +225,7 @@ class DetectionOptions:
     sigma_chroma_px: float = 0.3
     sigma_floor_choice: float = FLOOR_CHOICE
     sigma_second_look_choice: float = SECOND_LOOK_CHOICE
+    scene_texture_sigma_px: float = 8.0
 
     @property
     def sigma_model(self) -> SigmaModel:
@@ -248,7 +252,7 @@ class DetectionOptions:
                      "narrow_window_ratio", "wide_maximum_ratio", "crosstalk_max_noise_px"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
-        for name in ("snr_half", "clutter_half", "colour_tau"):
+        for name in ("snr_half", "clutter_half", "colour_tau", "scene_texture_sigma_px"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be positive, got {getattr(self, name)}")
         if not self.spot_sigmas_px or min(self.spot_sigmas_px) <= 0:

@@ -139,6 +139,23 @@ def read_rgb(path: Path, check: bool = True) -> NDArray[np.uint8]:
     return np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB, dst=bgr), dtype=np.uint8)
 
 
+def read_scene_reference(path: Path) -> NDArray[np.float32]:
+    """A scene reference (H, W, 3) float32 RGB in 8-bit levels, NaN where unknown: an 8- or
+    16-bit RGB image (16-bit scaled by 1/257), or RGBA whose alpha 0 marks pixels the
+    reference does not cover (the mesh did not reach them); InputError when unreadable."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+    if raw is None or raw.ndim != 3 or raw.shape[2] not in (3, 4):
+        raise InputError("not a readable RGB or RGBA image", path)
+    if raw.dtype not in (np.uint8, np.uint16):
+        raise InputError(f"a scene reference must be 8- or 16-bit, got {raw.dtype}", path)
+    levels = np.float32(1.0 if raw.dtype == np.uint8 else 1.0 / 257.0)
+    rgb = cv2.cvtColor(np.ascontiguousarray(raw[..., :3]), cv2.COLOR_BGR2RGB).astype(np.float32)
+    rgb *= levels
+    if raw.shape[2] == 4:
+        rgb[raw[..., 3] == 0] = np.nan
+    return rgb
+
+
 def read_gray(path: Path) -> NDArray[np.uint8]:
     """(H, W) uint8 grey, in the stored pixel frame; InputError when unreadable."""
     gray = cv2.imread(str(path), _STORED_GRAY)

@@ -155,6 +155,12 @@ class Frame:
     ``camera_spec`` the COLMAP OPENCV camera. ``image_laser_free_rgb`` (with
     ``render_frame(..., laser_free=True)``): the same photograph, same noise, without the
     lasers' spots and glow.
+
+    ``image_scene_rgb`` (with ``render_frame(..., scene_reference=True)``): the seafloor as a
+    laser-free view of it would record it, pixel-aligned with this one: the same lit seafloor
+    and camera, without the lasers, the lamp hot spots, the seafloor's forward-scatter veil
+    and the particles of the water column (marine snow, glints: they do not stay in place
+    between photographs), with its own noise draws and JPEG.
     """
 
     image_rgb: U8
@@ -163,6 +169,7 @@ class Frame:
     truth: dict[str, tuple[float, float] | None]
     meta: dict[str, Any]
     image_laser_free_rgb: U8 | None = None
+    image_scene_rgb: U8 | None = None
 
 
 def _log_uniform(rng: np.random.Generator, lo_hi: Range) -> float:
@@ -318,10 +325,12 @@ def _plan(condition_name: str, width: int, height: int, rng: np.random.Generator
     return _Work(cond, cam, wavelength, wat, lay, ctx, discs, meta)
 
 
-def _exposed_scene(work: _Work, rng: np.random.Generator
-                   ) -> tuple[F32, sensor.SensorSettings, beams_mod.AlbedoFn]:
+def _exposed_scene(work: _Work, rng: np.random.Generator, keep_seafloor: bool = False
+                   ) -> tuple[F32, sensor.SensorSettings, beams_mod.AlbedoFn, F32 | None]:
     """The lit seafloor, camera settings, auto-exposure, hot spots, forward scatter and the
-    additive light of particles and glints (steps 3-5), in exposed raw units."""
+    additive light of particles and glints (steps 3-5), in exposed raw units; with
+    ``keep_seafloor`` also a copy of the exposed seafloor alone (before hot spots, veil and
+    particles), else None."""
     cond, cam, lay = work.cond, work.cam, work.lay
     hot, hot_aims = compose.hot_lamps(rng, work.ctx) if cond.hotspots else ((), [])
     look = texture.random_look(rng)
@@ -334,6 +343,7 @@ def _exposed_scene(work: _Work, rng: np.random.Generator
     exposure = sensor.auto_exposure(scene.radiance, settings, target)
     radiance = scene.radiance
     radiance *= np.float32(exposure)
+    seafloor = radiance.copy() if keep_seafloor else None
     hot_peak = 0.0
     if scene.hotspot is not None:  # lobe + seabed at the lobe's centre: 0.9-1.3x white
         hot_peak = float(rng.uniform(0.9, 1.3))
@@ -355,7 +365,8 @@ def _exposed_scene(work: _Work, rng: np.random.Generator
         "hotspot_aims_px": [list(map(float, a)) for a in hot_aims],
         "marine_snow_count": len(snow), "glint_count": len(glints),
         "laser_lit_particles": [[d.x, d.y, 2 * d.a_px, max(d.rgb)] for d in lit]})
-    return radiance, settings, beams_mod.albedo_function(bank, look, scene.linear_below_m)
+    return (radiance, settings, beams_mod.albedo_function(bank, look, scene.linear_below_m),
+            seafloor)
 
 
 def _visibility(work: _Work, radiance: F32, spot_meta: dict[str, dict[str, float]]
@@ -385,7 +396,7 @@ def _visibility(work: _Work, radiance: F32, spot_meta: dict[str, dict[str, float
 
 def render_frame(condition_name: str, width: int, height: int,
                  rng: np.random.Generator, laser_free: bool = False,
-                 laser_free_jpeg: bool = True) -> Frame:
+                 laser_free_jpeg: bool = True, scene_reference: bool = False) -> Frame:
     """Render one photograph of the named condition at this size (see the module docstring).
 
     Everything is drawn from ``rng``: the same generator state gives the same frame.
@@ -393,14 +404,20 @@ def render_frame(condition_name: str, width: int, height: int,
     spot's ``visible_levels`` (:func:`visible_levels`) in ``meta["spots"]``;
     ``laser_free_jpeg`` False leaves that capture unencoded (the camera's 8-bit output before
     JPEG), so the frame minus it holds the lasers' light with the frame's own compression only.
+    ``scene_reference``: also capture the seafloor alone (``Frame.image_scene_rgb``) with noise
+    drawn from a stream of its own (``rng`` draws what it would without it: the frame is the
+    same).
     """
     work = _plan(condition_name, width, height, rng)
-    radiance, settings, albedo_at = _exposed_scene(work, rng)
+    radiance, settings, albedo_at, seafloor = _exposed_scene(work, rng, scene_reference)
     crops, spot_meta = spot_crops(work.cond, work.cam, work.lay, work.wat, albedo_at, settings, rng)
     truth = _visibility(work, radiance, spot_meta)
     dark_settings = settings if laser_free_jpeg else replace(settings, jpeg=False)
     dark = (sensor.capture(radiance.copy(), dark_settings, _same_draws(rng), ())
             if laser_free else None)
+    scene = (None if seafloor is None
+             else sensor.capture(seafloor, settings, _other_draws(rng), ()))
+    del seafloor
     image = sensor.capture(radiance, settings, rng, crops)
     del radiance
     if dark is not None:
@@ -423,7 +440,8 @@ def render_frame(condition_name: str, width: int, height: int,
         "water_optics": water.describe(wat),
     }
     return Frame(image_rgb=image, camera_spec=optics.colmap_camera_spec(work.cam),
-                 rig_toml=rig, truth=truth, meta=meta, image_laser_free_rgb=dark)
+                 rig_toml=rig, truth=truth, meta=meta, image_laser_free_rgb=dark,
+                 image_scene_rgb=scene)
 
 
 def _same_draws(rng: np.random.Generator) -> np.random.Generator:
@@ -431,6 +449,13 @@ def _same_draws(rng: np.random.Generator) -> np.random.Generator:
     bit = type(rng.bit_generator)()
     bit.state = rng.bit_generator.state
     return np.random.Generator(bit)
+
+
+def _other_draws(rng: np.random.Generator) -> np.random.Generator:
+    """A generator independent of ``rng`` (its state jumped far ahead; ``rng`` untouched)."""
+    bit = type(rng.bit_generator)()
+    bit.state = rng.bit_generator.state
+    return np.random.Generator(bit.jumped())  # type: ignore[attr-defined]  # PCG64, Philox
 
 
 def visible_levels(image: U8, laser_free: U8, x: float, y: float, radius: int = 3) -> float:
