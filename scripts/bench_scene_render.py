@@ -22,7 +22,6 @@ and the script measures:
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import statistics
 import tempfile
@@ -36,9 +35,11 @@ from bench_detection_physical import MATCH_PX, _seeds, _sizes
 from numpy.typing import NDArray
 
 from sfm_laserscale.detection import DetectionOptions, detect_spots
+from sfm_laserscale.detection.scene import scene_texture
 from sfm_laserscale.io.images import read_rgb
 from sfm_laserscale.io.meshes.mesh import load_mesh
 from sfm_laserscale.io.models import load_model
+from sfm_laserscale.io.spots_csv import read_spots_csv
 from sfm_laserscale.model import Camera
 from sfm_laserscale.pipeline_folders import GivenInputs, resolve_scale_inputs
 from sfm_laserscale.raycast import MeshRaycaster
@@ -49,7 +50,7 @@ from sfm_laserscale.scene_reference import (
     SceneReferenceOptions,
     render_scene_reference,
 )
-from sfm_laserscale.synthetic.underwater.survey import Survey, SurveyOptions, make_survey
+from sfm_laserscale.synthetic.underwater.survey import SurveyOptions, make_survey
 
 PATCH_PX = 64
 SPOT_MASK_PX = 25
@@ -68,10 +69,6 @@ class ImageFit:
     found: tuple[int, int]
     truths: int
     errors_px: tuple[tuple[float, ...], tuple[float, ...]]
-
-
-def _fine(grey: NDArray[np.float32]) -> NDArray[np.float32]:
-    return np.asarray(grey - cv2.GaussianBlur(grey, (0, 0), 8.0), dtype=np.float32)
 
 
 def patch_shift(a: NDArray[np.float32], b: NDArray[np.float32]) -> tuple[float, float] | None:
@@ -108,14 +105,6 @@ def patch_shifts(a: NDArray[np.float32], b: NDArray[np.float32],
     return out
 
 
-def _truths(survey: Survey) -> dict[str, dict[str, tuple[float, float]]]:
-    out: dict[str, dict[str, tuple[float, float]]] = {}
-    with survey.spots_path.open(newline="") as f:
-        for row in csv.DictReader(f):
-            out.setdefault(row["image"], {})[row["laser"]] = (float(row["x"]), float(row["y"]))
-    return out
-
-
 def survey_fits(seed: int, size: tuple[int, int], views: int, work: Path) -> list[ImageFit]:
     """Make survey ``seed``, register its laser images with ``scale`` and measure each."""
     from sfm_laserscale.commands.scale import run
@@ -132,7 +121,8 @@ def survey_fits(seed: int, size: tuple[int, int], views: int, work: Path) -> lis
     model_views = [ModelView(model.cameras[im.camera_id], im.cam_from_world,
                              read_rgb(survey.images_dir / im.name))
                    for im in model.images.values()]
-    rig, truths = load_rig(survey.rig_path), _truths(survey)
+    rig = load_rig(survey.rig_path)
+    truths = read_spots_csv(survey.spots_path, None, rig.names)
     fits = []
     for image in result.images:
         reg = image.registration
@@ -141,7 +131,8 @@ def survey_fits(seed: int, size: tuple[int, int], views: int, work: Path) -> lis
         ref = render_scene_reference(image.camera, reg.cam_from_world, caster, model_views,
                                      SceneReferenceOptions(n_views=views))
         fits.append(_measure(image.name, read_rgb(image.path), ref.rgb, ref.coverage,
-                             image.camera, rig, truths.get(image.name, {})))
+                             image.camera, rig,
+                             {s.laser: (s.x, s.y) for s in truths.get(image.name, [])}))
     return fits
 
 
@@ -151,9 +142,10 @@ def _measure(name: str, rgb: NDArray[np.uint8], ref: NDArray[np.float32], covera
     usable = known.copy()
     for x, y in truth.values():
         cv2.circle(usable.view(np.uint8), (int(x), int(y)), SPOT_MASK_PX, 0, -1)
-    grey = rgb.astype(np.float32).mean(axis=2)
-    ref_grey = np.where(known, ref.mean(axis=2), float(np.nanmean(ref))).astype(np.float32)
-    a, b = _fine(grey), _fine(ref_grey)
+    # the fine texture the detector would subtract (detection.scene), as grey
+    sigma = DetectionOptions().scene_texture_sigma_px
+    a = scene_texture(rgb.astype(np.float32), sigma).mean(axis=2)
+    b = scene_texture(ref, sigma).mean(axis=2)
     found, errors = [], []
     for scene in (None, ref):
         res = detect_spots(rgb, camera, rig, DetectionOptions(), scene_rgb=scene)

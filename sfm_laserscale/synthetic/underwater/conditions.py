@@ -453,8 +453,7 @@ def _same_draws(rng: np.random.Generator) -> np.random.Generator:
 
 def _other_draws(rng: np.random.Generator) -> np.random.Generator:
     """A generator independent of ``rng`` (its state jumped far ahead; ``rng`` untouched)."""
-    bit = type(rng.bit_generator)()
-    bit.state = rng.bit_generator.state
+    bit = _same_draws(rng).bit_generator
     return np.random.Generator(bit.jumped())  # type: ignore[attr-defined]  # PCG64, Philox
 
 
