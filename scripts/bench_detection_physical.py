@@ -50,7 +50,10 @@ capture of the seafloor alone (``render_frame(..., scene_reference=True)``: no l
 spots or particles; its own noise) as a model image warped into the frame through the mesh
 would show it (:func:`as_rendered`): shifted SHIFT px in a random direction (registration
 and mesh error), blurred by a Gaussian of BLUR px (resampling, the texture's resolution) and
-lit by a gain ramp of ±GAIN across the frame (lamps elsewhere).
+lit by a gain ramp of ±GAIN across the frame (lamps elsewhere). As in ``scale``, the
+reference is then kept only where it fits the frame (``scene_fit.fit_reference``: cells whose
+neighbourhood's residual texture is no smaller than the frame's, or shifted more than 1 px,
+are dropped); ``--no-scene-fit`` gives it whole.
 
 ``run_benchmark`` (and ``run_small``, a reduced set for tests) can be imported through
 ``tests/script_loader.py``.
@@ -95,11 +98,13 @@ DEFAULT_SIZES = ((1920, 1080), (4000, 3000))
 @dataclass(frozen=True)
 class SceneReference:
     """How a scene reference rendered from the model differs from the seafloor it shows
-    (:func:`as_rendered`): shift (px, random direction), Gaussian blur (px), gain ramp (±)."""
+    (:func:`as_rendered`): shift (px, random direction), Gaussian blur (px), gain ramp (±);
+    ``fit``: kept only where it fits the frame (``scene_fit.fit_reference``, as ``scale``)."""
 
     shift_px: float = 0.5
     blur_px: float = 0.7
     gain: float = 0.1
+    fit: bool = True
 
 
 @dataclass(frozen=True)
@@ -309,6 +314,7 @@ def run_job(job: Job) -> dict[str, Any]:
     from sfm_laserscale.commands.detect import parse_camera
     from sfm_laserscale.detection import DetectionOptions, detect_spots
     from sfm_laserscale.rig import rig_from_dict
+    from sfm_laserscale.scene_fit import fit_reference
 
     t0 = time.perf_counter()
     frame = cached_frame(job)
@@ -320,6 +326,10 @@ def run_job(job: Job) -> dict[str, Any]:
         scene_rng = np.random.default_rng([job.seed, job.condition_index, job.size_index,
                                            job.index, 7])
         scene_rgb = as_rendered(frame.image_scene_rgb, job.scene, scene_rng)
+    fit = None
+    if scene_rgb is not None and job.scene is not None and job.scene.fit:
+        fit = fit_reference(frame.image_rgb, scene_rgb)
+        scene_rgb = fit.rgb
     result = detect_spots(frame.image_rgb, camera, rig, DetectionOptions(), scene_rgb=scene_rgb)
     t2 = time.perf_counter()
     rec = score_frame(frame, result)
@@ -327,6 +337,9 @@ def run_job(job: Job) -> dict[str, Any]:
                 "size": f"{job.width}x{job.height}", "index": job.index,
                 "render_s": t1 - t0, "detect_s": t2 - t1,
                 "water": frame.meta["water"], "wavelength_nm": frame.meta["wavelength_nm"],
+                "scene_fit": None if fit is None else {
+                    "kept_share": fit.kept_share, "ratio_median": fit.ratio_median,
+                    "shift_median_px": fit.shift_median_px},
                 "spot_meta": {k: {m: v for m, v in d.items()
                                   if m in ("peak_over_white", "range_m", "incidence_deg",
                                            "sigma_major_px", "oracle_shift_px",
@@ -703,6 +716,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                     metavar="SHIFT,BLUR,GAIN",
                     help="give the detector a scene reference of every frame, shifted SHIFT px, "
                          "blurred BLUR px, lit by a ramp of ±GAIN (e.g. 0.5,0.7,0.1)")
+    ap.add_argument("--no-scene-fit", action="store_true",
+                    help="give the scene reference whole, without dropping the cells that do "
+                         "not fit the frame (scale drops them: scene_fit.fit_reference)")
     ap.add_argument("--compare", type=Path, default=None,
                     help="an earlier run's --out file: print what changed, frame by frame")
     args = ap.parse_args(argv)
@@ -710,13 +726,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     unknown = [c for c in conditions if c not in CONDITIONS]
     if unknown:
         ap.error(f"unknown condition(s) {', '.join(unknown)}; known: {', '.join(CONDITIONS)}")
+    reference = (None if args.scene_reference is None else
+                 replace(args.scene_reference, fit=not args.no_scene_fit))
     t0 = time.perf_counter()
     records, rows = run_benchmark(conditions, args.sizes, args.per_condition, args.seed,
                                   args.workers, args.visibility, args.cache, args.cache_max_gb,
-                                  args.scene_reference)
+                                  reference)
     elapsed = time.perf_counter() - t0
     if args.out is not None:
-        scene = None if args.scene_reference is None else asdict(args.scene_reference)
+        scene = None if reference is None else asdict(reference)
         args.out.write_text(json.dumps({"targets": TARGETS, "match_px": MATCH_PX,
                                         "seeds": args.seed, "scene_reference": scene,
                                         "summary": rows,

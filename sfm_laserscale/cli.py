@@ -128,6 +128,16 @@ def main(ctx: click.Context, debug: bool) -> None:
 _path = click.Path(path_type=Path)
 _NO_GUIDED_HELP = ("Do not search for missed spots where the model and the first scale put "
                    "them (docs/DETECTION.md).")
+_NO_SCENE_HELP = ("Detect on the laser photographs alone: do not render the model images "
+                  "into each registered laser image to remove the seafloor's texture "
+                  "(docs/DETECTION.md).")
+
+
+def _scene_options(kw: dict[str, Any]) -> Any:
+    from sfm_laserscale.scene_reference import SceneStageOptions
+
+    return SceneStageOptions(enabled=not kw["no_scene_reference"],
+                             keep_png=bool(kw.get("save_scene_references")))
 
 
 @main.command(cls=GreedyCommand)
@@ -178,6 +188,10 @@ _NO_GUIDED_HELP = ("Do not search for missed spots where the model and the first
 @click.option("--reuse-model-poses", is_flag=True, help="A laser image that is also a model "
               "image takes the model's pose instead of being registered.")
 @click.option("--no-guided-spots", is_flag=True, help=_NO_GUIDED_HELP)
+@click.option("--no-scene-reference", is_flag=True, help=_NO_SCENE_HELP)
+@click.option("--save-scene-references", is_flag=True, help="Write each laser image's scene "
+              "reference to scene_references/<stem>.png (RGBA, alpha 0 where unknown; "
+              "detect --scene reads them).")
 @click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
 @common_options
 def scale(**kw: Any) -> int:
@@ -195,7 +209,8 @@ def scale(**kw: Any) -> int:
     options = ScaleOptions(method=kw["method"], seed=kw["seed"], progress=not kw["quiet"],
                            reuse_model_poses=kw["reuse_model_poses"],
                            sift_workers=SiftWorkerOptions(workers=kw["workers"]),
-                           guided=GuidedSpotOptions(enabled=not kw["no_guided_spots"]))
+                           guided=GuidedSpotOptions(enabled=not kw["no_guided_spots"]),
+                           scene=_scene_options(kw))
     result = run(inputs, kw["out"], options, overwrite=kw["overwrite"])
     click.echo(result.summary)
     return EXIT_OK if result.success else EXIT_NO_SCALE
@@ -424,6 +439,7 @@ def pipeline_run_options(func: Callable[..., Any]) -> Callable[..., Any]:
         click.option("--seed", type=int, default=0, show_default=True),
         click.option("--workers", type=click.IntRange(min=0), help=_WORKERS_HELP),
         click.option("--no-guided-spots", is_flag=True, help=_NO_GUIDED_HELP),
+        click.option("--no-scene-reference", is_flag=True, help=_NO_SCENE_HELP),
         click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder."),
     )):
         func = option(func)
@@ -494,7 +510,8 @@ def _scale_options(kw: dict[str, Any]) -> Any:
 
     return ScaleOptions(method=kw["method"], seed=kw["seed"], progress=not kw["quiet"],
                         sift_workers=SiftWorkerOptions(workers=kw["workers"]),
-                        guided=GuidedSpotOptions(enabled=not kw["no_guided_spots"]))
+                        guided=GuidedSpotOptions(enabled=not kw["no_guided_spots"]),
+                        scene=_scene_options(kw))
 
 
 @main.command(cls=_PipelineCommand)

@@ -32,6 +32,7 @@ from sfm_laserscale.registration.options import (
 from sfm_laserscale.registration.pose import RegistrationResult
 from sfm_laserscale.registration.sift_workers import SiftPool, SiftWorkerOptions
 from sfm_laserscale.rig import Rig
+from sfm_laserscale.scene_reference import SceneStageOptions
 from sfm_laserscale.uncertainty import EstimationOptions, ImageEstimates, ImageObservation
 
 
@@ -88,6 +89,8 @@ class ScaleOptions:
     footprints: FootprintOptions = field(default_factory=FootprintOptions)  # footprints.csv
     # spots the detector missed, searched where the model puts them (guided_spots.py)
     guided: GuidedSpotOptions = field(default_factory=GuidedSpotOptions)
+    # each registered laser image detected again against its seafloor (scene_stage.py)
+    scene: SceneStageOptions = field(default_factory=SceneStageOptions)
 
 
 @dataclass(frozen=True)
@@ -109,6 +112,25 @@ class LoadedInputs:
 
 
 @dataclass(frozen=True)
+class SceneUse:
+    """How a laser image's scene reference was used (scene_stage.py): ``used`` or the
+    ``reason`` it was not; the model images rendered, the share of the image the render
+    covers, the share of that the fit kept, the fit's median |shift| (px) and residual ratio
+    (NaN: not measured), the spots found on the photograph alone, and the reference as a PNG
+    when it is to be saved."""
+
+    used: bool
+    reason: str | None
+    views: tuple[str, ...] = ()
+    coverage: float = 0.0
+    kept_share: float = 0.0
+    shift_median_px: float = float("nan")
+    residual_ratio_median: float = float("nan")
+    spots_alone: int = 0
+    png: bytes | None = field(default=None, repr=False)
+
+
+@dataclass(frozen=True)
 class ImageRun:
     """What happened to one laser image (kept whether it worked or not)."""
 
@@ -124,6 +146,7 @@ class ImageRun:
     reason: str | None  # why the image gave no estimate, None when it did
     observation: ImageObservation | None = None  # what the estimators saw (with model error)
     mesh_errors: tuple[SpotMeshError, ...] = ()  # each hit's mesh check
+    scene: SceneUse | None = None  # the scene reference's use (None: not tried)
 
 
 class Timer:
@@ -146,7 +169,8 @@ class Timer:
             k: round(self.seconds.get(k, 0.0), 4)
             for k in ("load", "detect", "register", "raycast", "estimate", "write")
         }
-        for k in ("sift_here", "sift_in_workers", "footprints", "guided"):  # when these ran
+        # the stages that do not always run, when they ran
+        for k in ("sift_here", "sift_in_workers", "scene", "footprints", "guided"):
             if k in self.seconds:
                 out[k] = round(self.seconds[k], 4)
         out["total"] = round(time.perf_counter() - self._start, 4)

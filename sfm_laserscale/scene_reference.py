@@ -1,9 +1,12 @@
 """A scene reference for a laser image: the model images rendered into its pose through the mesh.
 
-A registered laser image sees a seafloor the model images saw without the lasers. For every
-pixel of the laser image the ray through it is cast into the mesh (its first hit,
-:class:`sfm_laserscale.raycast.MeshRaycaster`); the hit is projected into the ``n_views`` model
-images whose centres lie nearest the laser camera's and sampled there (bilinear). The views are
+A registered laser image sees a seafloor the model images saw without the lasers. Rays
+through a grid of the laser image's pixels, every ``grid_px``, are cast into the mesh (first
+hits, :class:`sfm_laserscale.raycast.MeshRaycaster`); the hits are projected into the
+``n_views`` model images whose centres lie nearest the laser camera's, each pixel's place in a
+view is interpolated bilinearly between the grid's (the mesh is smooth at a few pixels; a
+pixel next to a grid ray that misses is unknown), and the view is sampled there (bilinear). The
+views are
 brought to the first one's level (per channel, the ratio of their medians over the pixels both
 see: exposure and lamps differ between photographs) and their per-pixel median is the
 reference, so what one view alone holds (a particle in the water, a glint) drops out. A pixel
@@ -20,7 +23,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -29,9 +32,12 @@ from numpy.typing import NDArray
 from sfm_laserscale.errors import InputError
 from sfm_laserscale.model import Camera, Pose
 from sfm_laserscale.raycast import MeshRaycaster, pixel_rays
+from sfm_laserscale.scene_fit import SceneFitOptions
 
 #: rays cast at once (about 100 bytes each in flight)
 RAY_CHUNK = 1 << 20
+#: the views' levels are matched on every LEVEL_STRIDE-th pixel (rows and columns)
+LEVEL_STRIDE = 4
 
 
 @dataclass(frozen=True)
@@ -46,14 +52,39 @@ class ModelView:
 @dataclass(frozen=True)
 class SceneReferenceOptions:
     """``n_views``: the nearest model images rendered; ``min_shared_px``: pixels two views
-    must share before one is brought to the other's level (fewer: left as it is)."""
+    must share before one is brought to the other's level (fewer: left as it is);
+    ``grid_px``: rays are cast every ``grid_px`` pixels and the views' coordinates
+    interpolated between them."""
 
     n_views: int = 3
     min_shared_px: int = 1000
+    grid_px: int = 4
 
     def __post_init__(self) -> None:
         if self.n_views < 1:
             raise InputError(f"n_views must be at least 1, got {self.n_views}")
+        if self.grid_px < 1:
+            raise InputError(f"grid_px must be at least 1, got {self.grid_px}")
+
+
+@dataclass(frozen=True)
+class SceneStageOptions:
+    """How ``scale`` uses scene references (scene_stage.py). ``enabled``: render references
+    and detect again; ``render``, ``fit``: the render's and the fit's options;
+    ``min_coverage``: the share of the image the fitted reference must still cover to be
+    used; ``keep_png``: keep each used reference as a 16-bit RGBA PNG (alpha 0: unknown) for
+    ``--save-scene-references``."""
+
+    enabled: bool = True
+    render: SceneReferenceOptions = field(default_factory=SceneReferenceOptions)
+    fit: SceneFitOptions = field(default_factory=SceneFitOptions)
+    min_coverage: float = 0.05
+    keep_png: bool = False
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.min_coverage <= 1:
+            raise InputError(f"min_coverage must be in [0, 1], got {self.min_coverage}")
+
 
 
 @dataclass(frozen=True)
@@ -66,62 +97,98 @@ class SceneReference:
     coverage: float
 
 
-def nearest_views(views: Sequence[ModelView], centre_world: NDArray[np.float64],
+def nearest_views(centres_world: NDArray[np.float64], centre_world: NDArray[np.float64],
                   n: int) -> list[int]:
-    """Indices of the ``n`` views whose camera centres lie nearest ``centre_world``."""
-    dist = [float(np.linalg.norm(v.cam_from_world.center - centre_world)) for v in views]
+    """Indices of the ``n`` camera centres (N, 3; model frame) nearest ``centre_world``."""
+    dist = np.linalg.norm(np.asarray(centres_world).reshape(-1, 3) - centre_world, axis=1)
     return [int(i) for i in np.argsort(dist, kind="stable")[:n]]
 
 
-def pixel_hits(camera: Camera, cam_from_world: Pose, caster: MeshRaycaster
-               ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """The mesh's first hit (H·W, 3; model frame) through every pixel centre, row-major, and
-    whether there is one."""
-    rows, cols = np.mgrid[0:camera.height, 0:camera.width]
-    xy_px = np.stack([cols.ravel() + 0.5, rows.ravel() + 0.5], axis=1).astype(np.float64)
+def grid_pixels(size: int, step_px: int) -> NDArray[np.float64]:
+    """Pixel centres (COLMAP) every ``step_px`` along an axis of ``size`` px, the last one's
+    centre included: 0.5, 0.5 + step, ..., size − 0.5."""
+    n = max(2, -(-(size - 1) // step_px) + 1)
+    return np.linspace(0.5, size - 0.5, n)
+
+
+def grid_hits(camera: Camera, cam_from_world: Pose, caster: MeshRaycaster, step_px: int
+              ) -> NDArray[np.float64]:
+    """The mesh's first hit (model frame) through the pixel centres of a grid every
+    ``step_px`` (:func:`grid_pixels`): (rows, cols, 3), NaN where the ray misses."""
+    xs, ys = grid_pixels(camera.width, step_px), grid_pixels(camera.height, step_px)
+    xy_px = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
     xyz = np.full((len(xy_px), 3), np.nan)
-    hit = np.zeros(len(xy_px), dtype=bool)
     world_from_cam = cam_from_world.inverse()
     for start in range(0, len(xy_px), RAY_CHUNK):
         part = slice(start, start + RAY_CHUNK)
         origins, directions = pixel_rays(camera, world_from_cam, xy_px[part])
         cast = caster.cast(origins, directions)
-        xyz[part], hit[part] = cast.xyz, cast.hit
-    return xyz, hit
+        xyz[part] = np.where(cast.hit[:, None], cast.xyz, np.nan)
+    return xyz.reshape(len(ys), len(xs), 3)
 
 
-def sample_view(view: ModelView, xyz_world: NDArray[np.float64], hit: NDArray[np.bool_],
-                shape: tuple[int, int]) -> NDArray[np.float32]:
-    """``view``'s pixels at the points (N, 3) = H·W, bilinear, as (H, W, 3) float32; NaN
-    where there is no point, it lies behind the camera or outside the image."""
-    xyz_cam = view.cam_from_world.transform(np.where(hit[:, None], xyz_world, 0.0))
-    ahead = hit & (xyz_cam[:, 2] > 0)
-    uv = np.full((len(xyz_cam), 2), -1.0)
+def _grid_maps(camera: Camera, grid_shape: tuple[int, int]
+               ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Per pixel (H, W) of the image, its fractional column and row in the grid."""
+    cols = np.arange(camera.width, dtype=np.float32) * np.float32(
+        (grid_shape[1] - 1) / max(camera.width - 1, 1))
+    rows = np.arange(camera.height, dtype=np.float32) * np.float32(
+        (grid_shape[0] - 1) / max(camera.height - 1, 1))
+    return (np.broadcast_to(cols[None, :], (camera.height, camera.width)).copy(),
+            np.broadcast_to(rows[:, None], (camera.height, camera.width)).copy())
+
+
+def view_coordinates(view: ModelView, xyz_grid: NDArray[np.float64],
+                     maps: tuple[NDArray[np.float32], NDArray[np.float32]]
+                     ) -> NDArray[np.float32]:
+    """Where each pixel of the laser image lies in ``view`` (H, W, 2; COLMAP px): the grid's
+    hits projected into the view, interpolated bilinearly between grid points; NaN next to a
+    grid point without a hit or behind the view's camera."""
+    flat = xyz_grid.reshape(-1, 3)
+    known: NDArray[np.bool_] = np.asarray(np.isfinite(flat).all(axis=1))
+    xyz_cam = view.cam_from_world.transform(np.where(known[:, None], flat, 0.0))
+    ahead = known & (xyz_cam[:, 2] > 0)
+    uv = np.full((len(flat), 2), np.nan)
     uv[ahead] = view.camera.project(xyz_cam[ahead])
+    uv_grid = uv.reshape(*xyz_grid.shape[:2], 2).astype(np.float32)
+    # bilinear with NaN: a pixel with an unknown grid corner is unknown
+    return cv2.remap(uv_grid, maps[0], maps[1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE)
+
+
+def sample_view(view: ModelView, uv_px: NDArray[np.float32]) -> NDArray[np.float32]:
+    """``view``'s pixels at the COLMAP coordinates ``uv_px`` (H, W, 2), bilinear, as
+    (H, W, 3) float32; NaN where the coordinates are unknown or outside the image."""
     # COLMAP pixels: the centre of the top-left pixel is (0.5, 0.5); OpenCV's is (0, 0)
-    map_x = (uv[:, 0] - 0.5).reshape(shape).astype(np.float32)
-    map_y = (uv[:, 1] - 0.5).reshape(shape).astype(np.float32)
+    map_x = uv_px[..., 0] - np.float32(0.5)
+    map_y = uv_px[..., 1] - np.float32(0.5)
     height, width = view.image_rgb.shape[:2]
-    sampled = cv2.remap(view.image_rgb.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR,
+    inside: NDArray[np.bool_] = ((map_x >= 0) & (map_y >= 0) & (map_x <= width - 1)
+                                 & (map_y <= height - 1))
+    # float pixels: OpenCV rounds a uint8 remap to whole levels
+    sampled = cv2.remap(view.image_rgb.astype(np.float32),
+                        np.where(inside, map_x, -1).astype(np.float32),
+                        np.where(inside, map_y, -1).astype(np.float32), cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_REPLICATE)
-    inside = (ahead.reshape(shape) & (map_x >= 0) & (map_y >= 0)
-              & (map_x <= width - 1) & (map_y <= height - 1))
     sampled[~inside] = np.nan
     return sampled
 
 
 def match_levels(samples: list[NDArray[np.float32]], min_shared_px: int) -> None:
     """In place: every view after the first scaled, per channel, by the ratio of the first's
-    median to its own over the pixels both see (when they share ``min_shared_px``)."""
-    first_known = np.isfinite(samples[0]).all(axis=2)
+    median to its own over the pixels both see (when they share ``min_shared_px``; the
+    medians over every LEVEL_STRIDE-th pixel of each row and column)."""
+    first = samples[0][::LEVEL_STRIDE, ::LEVEL_STRIDE]
+    first_known = np.isfinite(first).all(axis=2)
     for other in samples[1:]:
-        shared = first_known & np.isfinite(other).all(axis=2)
-        if shared.sum() < min_shared_px:
+        thin = other[::LEVEL_STRIDE, ::LEVEL_STRIDE]
+        shared = first_known & np.isfinite(thin).all(axis=2)
+        if shared.sum() * LEVEL_STRIDE ** 2 < min_shared_px:
             continue
         for ch in range(3):
-            own = float(np.median(other[shared, ch]))
+            own = float(np.median(thin[shared, ch]))
             if own > 0:
-                other[..., ch] *= np.float32(float(np.median(samples[0][shared, ch])) / own)
+                other[..., ch] *= np.float32(float(np.median(first[shared, ch])) / own)
 
 
 def render_scene_reference(camera: Camera, cam_from_world: Pose, caster: MeshRaycaster,
@@ -132,10 +199,12 @@ def render_scene_reference(camera: Camera, cam_from_world: Pose, caster: MeshRay
     docstring)."""
     if not views:
         raise InputError("a scene reference needs at least one model image")
-    chosen = nearest_views(views, cam_from_world.center, options.n_views)
-    shape = (camera.height, camera.width)
-    xyz, hit = pixel_hits(camera, cam_from_world, caster)
-    samples = [sample_view(views[i], xyz, hit, shape) for i in chosen]
+    centres = np.array([v.cam_from_world.center for v in views])
+    chosen = nearest_views(centres, cam_from_world.center, options.n_views)
+    xyz_grid = grid_hits(camera, cam_from_world, caster, options.grid_px)
+    maps = _grid_maps(camera, xyz_grid.shape[:2])
+    samples = [sample_view(views[i], view_coordinates(views[i], xyz_grid, maps))
+               for i in chosen]
     match_levels(samples, options.min_shared_px)
     stack = np.stack(samples)  # (views, H, W, 3): a pixel a view misses is NaN in all three
     with warnings.catch_warnings():  # pixels no view sees are NaN by design

@@ -334,12 +334,21 @@ def test_a_scene_reference_as_a_render_from_the_model(bench: ModuleType, tmp_pat
     assert 89.9 < lit.min() < 95.0 and 105.0 < lit.max() < 110.1
     args = ["--sizes", "320x240", "--conditions", "clipped_cores", "--per-condition", "1",
             "--workers", "1", "--cache", str(tmp_path / "frames")]
-    plain, scene = tmp_path / "plain.json", tmp_path / "scene.json"
+    plain, scene, whole = (tmp_path / f"{n}.json" for n in ("plain", "scene", "whole"))
     assert bench.main([*args, "--out", str(plain)]) == 0
     assert bench.main([*args, "--out", str(scene), "--scene-reference", "0.5,0.7,0.1"]) == 0
+    assert bench.main([*args, "--out", str(whole), "--scene-reference", "0.5,0.7,0.1",
+                       "--no-scene-fit"]) == 0
     saved = json.loads(scene.read_text())
-    assert saved["scene_reference"] == {"shift_px": 0.5, "blur_px": 0.7, "gain": 0.1}
+    assert saved["scene_reference"] == {"shift_px": 0.5, "blur_px": 0.7, "gain": 0.1,
+                                        "fit": True}
+    assert json.loads(whole.read_text())["scene_reference"]["fit"] is False
     assert json.loads(plain.read_text())["scene_reference"] is None
+    # as scale does, the reference is kept where it fits the frame, and the fit is recorded
+    [fitted] = saved["images"]
+    assert 0.0 < fitted["scene_fit"]["kept_share"] <= 1.0
+    assert fitted["scene_fit"]["shift_median_px"] == pytest.approx(0.5, abs=0.25)
+    assert json.loads(whole.read_text())["images"][0]["scene_fit"] is None
     assert sorted(p.name for p in (tmp_path / "frames").glob("*/*.pkl")) == [
         "s0_clipped_cores_320x240_z0_000.pkl", "s0_clipped_cores_320x240_z0_000_sc.pkl"]
     job = bench.jobs_for(["clipped_cores"], [(320, 240)], 1, 0)[0]

@@ -72,7 +72,8 @@ def test_the_reference_is_the_laser_views_texture_where_the_mesh_is() -> None:
     x_floor = (cols + 0.5 - 160.0) / 300.0 * 2.0  # the floor's x under each pixel
     inner = np.zeros_like(known)
     inner[30:-30, 30:] = True  # the model images together see all but the laser view's rim
-    assert not known[x_floor > 0.21].any() and known[inner & (x_floor < 0.19)].all()
+    # rays every grid_px = 4 px: a pixel within a grid step of the floor's edge may be unknown
+    assert not known[x_floor > 0.21].any() and known[inner & (x_floor < 0.17)].all()
     assert ref.coverage == pytest.approx(known.mean())
     err = np.abs(ref.rgb[known] - truth[known])
     assert err.mean() < 0.3 and np.percentile(err, 99) < 1.0
@@ -81,7 +82,8 @@ def test_the_reference_is_the_laser_views_texture_where_the_mesh_is() -> None:
 def test_the_nearest_views_and_bad_options() -> None:
     views = [ModelView(CAMERA, _pose((x, 0.0, -2.0)), np.zeros((240, 320, 3), np.uint8))
              for x in (3.0, 0.5, -1.0, 0.1)]
-    assert nearest_views(views, np.array([0.0, 0.0, -2.0]), 2) == [3, 1]
+    assert nearest_views(np.array([v.cam_from_world.center for v in views]),
+                         np.array([0.0, 0.0, -2.0]), 2) == [3, 1]
     with pytest.raises(InputError, match="n_views"):
         SceneReferenceOptions(n_views=0)
     with pytest.raises(InputError, match="at least one model image"):

@@ -31,7 +31,7 @@ def report(small_scale_run: Any) -> dict[str, Any]:
 
 
 def test_real_report_is_versioned_and_valid(report: dict[str, Any]) -> None:
-    assert report["schema_version"] == SCHEMA_VERSION == "1.0"
+    assert report["schema_version"] == SCHEMA_VERSION == "1.1"
     assert report["version"] == __version__
     assert report["units"]["scale"] == "metres per model unit"
     assert report["units"]["length"] == "metres"

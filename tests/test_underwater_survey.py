@@ -156,3 +156,82 @@ def test_spots_the_detector_missed_are_found_where_the_model_puts_them(
     assert "guided" in guided["timings_s"] and "guided" not in alone["timings_s"]
     rows = (scale_run[1] / "spots.csv").read_text().splitlines()
     assert sum(r.endswith(",guided") for r in rows) == len(found)
+
+
+@pytest.fixture(scope="module")
+def scene_run(survey: Survey, tmp_path_factory: pytest.TempPathFactory) -> tuple[Result, Path]:
+    """`scale` given the model's images: each laser image searched again against its scene
+    reference (saved), the guided search off to see the detector's own spots."""
+    return _run(survey, tmp_path_factory.mktemp("underwater_survey_scene") / "run",
+                "--images", str(survey.images_dir), "--save-scene-references",
+                "--no-guided-spots")
+
+
+def _within(report: dict[str, Any], truth: dict[str, Any], px: float) -> list[float]:
+    true_xy = {(im["name"], s["laser"]): (s["x"], s["y"])
+               for im in truth["laser_images"] for s in im["spots"] if s.get("x") is not None}
+    errors = [math.dist((s["x"], s["y"]), true_xy[(im["name"], s["laser"])])
+              for im in report["images"] for s in im["spots"]
+              if (im["name"], s["laser"]) in true_xy]
+    return [e for e in errors if e <= px]
+
+
+def test_without_model_images_no_scene_reference_and_the_report_says_why(
+        scale_run: tuple[Result, Path]) -> None:
+    for im in _report(scale_run)["images"]:
+        assert im["scene_reference"]["used"] is False
+        assert "give --images" in im["scene_reference"]["reason"]
+    assert not (scale_run[1] / "scene_references").exists()
+
+
+def test_scene_references_find_the_spots_the_photographs_alone_miss(
+        survey: Survey, scene_run: tuple[Result, Path], alone_run: tuple[Result, Path]) -> None:
+    truth = json.loads(survey.truth_path.read_text())
+    report, alone = _report(scene_run), _report(alone_run)
+    summary = _spot_summary(report, truth)
+    model_images = {p.name for p in survey.images_dir.glob("*.jpg")}
+    for im in report["images"]:
+        use = im["scene_reference"]
+        assert use["used"] and use["reason"] is None, summary
+        assert len(use["views"]) == 3 and set(use["views"]) <= model_images
+        assert use["coverage"] > 0.7 and use["kept_share"] > 0.5 and use["shift_median_px"] < 1
+        assert use["spots_alone"] == len(next(a for a in alone["images"]
+                                              if a["name"] == im["name"])["spots"])
+        saved = scene_run[1] / use["file"]
+        assert saved.is_file() and use["file"] == f"scene_references/{Path(im['name']).stem}.png"
+    found, before = _within(report, truth, 1.5), _within(alone, truth, 1.5)
+    assert len(found) > len(before), summary
+    assert len(found) >= 15, summary
+    err = (report["scale"]["value"] - survey.true_scale) / survey.true_scale
+    assert abs(err) < 0.003, f"{err:+.3%}\n{summary}"
+    assert "scene" in report["timings_s"] and "scene" not in alone["timings_s"]
+
+
+def test_detect_reads_the_saved_references(survey: Survey, scene_run: tuple[Result, Path],
+                                           tmp_path: Path) -> None:
+    report = _report(scene_run)
+    out = tmp_path / "detect"
+    args = ["detect", *(str(p) for p in sorted(survey.laser_images_dir.glob("*.jpg"))),
+            "--rig", str(survey.rig_path), "--model", str(survey.model_dir),
+            "--scene", str(scene_run[1] / "scene_references"), "--out", str(out), "--quiet"]
+    result = CliRunner().invoke(main, args, catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    detections = json.loads((out / "detections.json").read_text())
+    by_name = {im["name"]: im for im in report["images"]}
+    for im in detections["images"]:
+        assert im["scene_reference"].endswith(f"{Path(im['name']).stem}.png")
+        # the saved reference holds 1/257 of a level: the same spots, within 0.01 px
+        want = {s["laser"]: (s["x"], s["y"]) for s in by_name[im["name"]]["spots"]}
+        got = {s["laser"]: (s["x"], s["y"]) for s in im["spots"]}
+        assert got.keys() == want.keys()
+        assert all(math.dist(got[k], want[k]) < 0.01 for k in got)
+
+
+def test_no_scene_reference_searches_the_photographs_alone(
+        survey: Survey, alone_run: tuple[Result, Path], tmp_path: Path) -> None:
+    off = _report(_run(survey, tmp_path / "run", "--images", str(survey.images_dir),
+                       "--no-guided-spots", "--no-scene-reference"))
+    alone = _report(alone_run)
+    assert all(im["scene_reference"] is None for im in off["images"])
+    assert [im["spots"] for im in off["images"]] == [im["spots"] for im in alone["images"]]
+    assert "scene" not in off["timings_s"]

@@ -64,6 +64,7 @@ def scale_inputs_for(dataset: DemoDataset) -> ScaleInputs:
         laser_images=(dataset.laser_images_dir,),
         rig=dataset.rig_path,
         database=dataset.database_path,
+        model_images=dataset.images_dir,  # the model's images: scene references (scale)
     )
 
 

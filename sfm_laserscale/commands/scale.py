@@ -9,6 +9,7 @@ in :mod:`sfm_laserscale.run_types`.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections.abc import Callable, Sequence
@@ -93,6 +94,7 @@ from sfm_laserscale.report.inputs_used import add_input_keys
 from sfm_laserscale.report.writer import build_report, summary_line, write_outputs
 from sfm_laserscale.rig import Rig, load_rig
 from sfm_laserscale.run_types import ImageRun, LoadedInputs, ScaleInputs, ScaleOptions, Timer
+from sfm_laserscale.scene_stage import detect_all_with_references
 from sfm_laserscale.uncertainty import ImageObservation, estimate_image
 from sfm_laserscale.version import __version__
 
@@ -505,6 +507,21 @@ def register_all(loaded: LoadedInputs, options: ScaleOptions, timer: Timer) -> l
     return runs
 
 
+def scene_references(runs: Sequence[ImageRun], loaded: LoadedInputs, inputs: ScaleInputs,
+                     options: ScaleOptions, timer: Timer) -> list[ImageRun]:
+    """Every registered laser image detected again against its scene reference, rendered
+    from the model images through the whole mesh (scene_stage.py)."""
+    if not options.scene.enabled:
+        return list(runs)
+    if loaded.mesh is None:
+        raise ValueError("scene references need the whole mesh: run them before the crop")
+    folder = inputs.model_images or inputs.images
+    with timer("scene") if folder is not None else contextlib.nullcontext():  # when it runs
+        return detect_all_with_references(
+            runs, loaded.model, loaded.mesh, loaded.rig, folder, list(loaded.manual_spots),
+            options.detection, options.scene, options.progress)
+
+
 def image_footprints(runs: Sequence[ImageRun], loaded: LoadedInputs,
                      options: ScaleOptions) -> tuple[Footprint, ...]:
     """The footprint on the whole mesh of every laser image (registered ones; the others with
@@ -640,6 +657,7 @@ def run(
         # registration is over: the index's memory goes
         loaded = replace(loaded, index=None, sift_pool=None)
         trim_heap()
+        runs = scene_references(runs, loaded, inputs, options, timer)
         # the SIFT workers are done: the inputs' SHA-256 for the provenance is computed on
         # the core they leave, beside the rest of the run
         hashed = _provenance_inputs(inputs, loaded, given)

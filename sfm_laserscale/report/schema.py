@@ -16,7 +16,7 @@ from typing import Any
 import jsonschema
 
 #: The version of report.json's layout (not the package's version).
-SCHEMA_VERSION = "1.0"
+SCHEMA_VERSION = "1.1"
 
 #: report.json's ``units`` block.
 UNITS: dict[str, str] = {

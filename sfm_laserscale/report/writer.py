@@ -147,6 +147,25 @@ def _estimate_dicts(run: ImageRun) -> list[dict[str, Any]]:
     ]
 
 
+def _scene_dict(run: ImageRun) -> dict[str, Any] | None:
+    """How the image's scene reference was used (None: not tried, --no-scene-reference)."""
+    use = run.scene
+    if use is None:
+        return None
+    return {"used": bool(use.used), "reason": use.reason, "views": list(use.views),
+            "coverage": _num(use.coverage), "kept_share": _num(use.kept_share),
+            "shift_median_px": _num(use.shift_median_px),
+            "residual_ratio_median": _num(use.residual_ratio_median),
+            "spots_alone": int(use.spots_alone),
+            "file": scene_file(run.name) if use.png is not None else None}
+
+
+def scene_file(image: str) -> str:
+    """Where a laser image's saved scene reference goes in the output folder (the image's
+    stem, as ``detect --scene`` looks it up)."""
+    return f"scene_references/{Path(image).stem}.png"
+
+
 def _image_dict(run: ImageRun) -> dict[str, Any]:
     reg = run.registration
     pose = None if reg is None else reg.cam_from_world
@@ -172,6 +191,7 @@ def _image_dict(run: ImageRun) -> dict[str, Any]:
         ],
         "missing_spots": dict(run.spot_reasons),
         "estimates": _estimate_dicts(run),
+        "scene_reference": _scene_dict(run),
     }
     if pose is not None:
         d["cam_from_world"] = {
@@ -355,6 +375,20 @@ def _write_scaled(
         write_scaled_mesh(inputs.mesh, scaled, scale, progress=bar.update)
 
 
+def write_scene_references(out: Path, runs: Sequence[ImageRun]) -> None:
+    """The scene references kept for saving (--save-scene-references), one PNG per image."""
+    for r in runs:
+        if r.scene is None or r.scene.png is None:
+            continue
+        path = out / scene_file(r.name)
+        path.parent.mkdir(exist_ok=True)
+        if path.exists():
+            logger.warning("scene reference %s: two laser images share the stem %s; the first "
+                           "is kept", r.name, path.stem)
+            continue
+        path.write_bytes(r.scene.png)
+
+
 def write_outputs(
     out: Path,
     inputs: ScaleInputs,
@@ -373,6 +407,7 @@ def write_outputs(
     write_estimates_csv(out / "estimates.csv", runs)
     append_segment_rows(out / "estimates.csv", report)
     write_spots_csv(out / "spots.csv", {r.name: list(r.spots) for r in runs})
+    write_scene_references(out, runs)
     if math.isfinite(headline.value):
         write_sim3(out / "transform.sim3", headline.value)
         write_matrix_4x4(out / "transform_4x4.txt", headline.value)
