@@ -86,21 +86,24 @@ def cell_edges(size: int, patch_px: int) -> NDArray[np.int64]:
     return np.linspace(0, size, n + 1).round().astype(np.int64)
 
 
-def cell_sums(values: NDArray[np.float64], rows: NDArray[np.int64],
+def cell_sums(values: NDArray[np.floating], rows: NDArray[np.int64],
               cols: NDArray[np.int64]) -> NDArray[np.float64]:
-    """Per cell, the sum of ``values`` (H, W) over it: (rows − 1, cols − 1)."""
-    return np.add.reduceat(np.add.reduceat(values, rows[:-1], axis=0), cols[:-1], axis=1)
+    """Per cell, the sum of ``values`` (H, W) over it: (rows − 1, cols − 1), float64 (summed
+    in the values' own type: float32 halves the time at 12 MP, and a cell's sum of a few
+    thousand terms keeps 6 digits)."""
+    sums = np.add.reduceat(np.add.reduceat(values, rows[:-1], axis=0), cols[:-1], axis=1)
+    return np.asarray(sums, dtype=np.float64)
 
 
-def residual_ratios(a: NDArray[np.float64], b: NDArray[np.float64], known: NDArray[np.bool_],
+def residual_ratios(a: NDArray[np.float32], b: NDArray[np.float32], known: NDArray[np.bool_],
                     rows: NDArray[np.int64], cols: NDArray[np.int64],
                     min_known: float) -> NDArray[np.float64]:
     """Per cell, std(a − b) / std(a) over the known pixels (NaN: too few, or a flat)."""
-    w = known.astype(np.float64)
+    w = known.astype(np.float32)
     count = cell_sums(w, rows, cols)
     area = np.outer(np.diff(rows), np.diff(cols))
 
-    def var(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    def var(x: NDArray[np.float32]) -> NDArray[np.float64]:
         mean = cell_sums(w * x, rows, cols) / np.maximum(count, 1)
         return np.asarray(cell_sums(w * x * x, rows, cols) / np.maximum(count, 1) - mean ** 2)
 
@@ -111,7 +114,7 @@ def residual_ratios(a: NDArray[np.float64], b: NDArray[np.float64], known: NDArr
     return np.asarray(ratio)
 
 
-def cell_shifts(a: NDArray[np.float64], b: NDArray[np.float64], known: NDArray[np.bool_],
+def cell_shifts(a: NDArray[np.float32], b: NDArray[np.float32], known: NDArray[np.bool_],
                 rows: NDArray[np.int64], cols: NDArray[np.int64],
                 min_known: float) -> NDArray[np.float64]:
     """Per cell the translation (dx, dy) px carrying texture ``b`` onto ``a`` (a(x) =
@@ -120,7 +123,7 @@ def cell_shifts(a: NDArray[np.float64], b: NDArray[np.float64], known: NDArray[n
     cannot tell (too faint, or in one direction only). (rows − 1, cols − 1, 2)."""
     gy, gx = np.gradient(b)
     w = cv2.erode(known.astype(np.uint8), np.ones((2 * EDGE_PX + 1,) * 2, np.uint8),
-                  borderType=cv2.BORDER_REPLICATE).astype(np.float64)
+                  borderType=cv2.BORDER_REPLICATE).astype(np.float32)
     sxx, sxy, syy = (cell_sums(w * p * q, rows, cols) for p, q in ((gx, gx), (gx, gy), (gy, gy)))
     det = sxx * syy - sxy ** 2
     trace = sxx + syy
@@ -132,15 +135,15 @@ def cell_shifts(a: NDArray[np.float64], b: NDArray[np.float64], known: NDArray[n
     usable = (cell_sums(w, rows, cols) >= min_known * area) & (det > 0) & (
         cond <= SHIFT_MAX_CONDITION)
     d = np.zeros((*usable.shape, 2))
-    pix_r, pix_c = np.mgrid[0:a.shape[0], 0:a.shape[1]].astype(np.float32)
+    pix_c, pix_r = np.meshgrid(np.arange(a.shape[1], dtype=np.float32),
+                               np.arange(a.shape[0], dtype=np.float32))
     cell_r = np.repeat(np.arange(len(rows) - 1), np.diff(rows))
     cell_c = np.repeat(np.arange(len(cols) - 1), np.diff(cols))
-    b32 = b.astype(np.float32)
     for _ in range(SHIFT_STEPS):
         dx = d[..., 0][np.ix_(cell_r, cell_c)].astype(np.float32)
         dy = d[..., 1][np.ix_(cell_r, cell_c)].astype(np.float32)
         # cubic: a linear interpolation's smoothing biases a sub-pixel shift
-        moved = cv2.remap(b32, pix_c - dx, pix_r - dy, cv2.INTER_CUBIC,
+        moved = cv2.remap(b, pix_c - dx, pix_r - dy, cv2.INTER_CUBIC,
                           borderMode=cv2.BORDER_REFLECT)
         r = a - moved
         gxr, gyr = cell_sums(w * gx * r, rows, cols), cell_sums(w * gy * r, rows, cols)
@@ -173,8 +176,8 @@ def fit_reference(image_rgb: NDArray[np.uint8], reference_rgb: NDArray[np.float3
     if reference_rgb.shape != image_rgb.shape:
         raise InputError(f"the reference is {reference_rgb.shape}, the image {image_rgb.shape}")
     sigma = options.texture_sigma_px
-    a = scene_texture(image_rgb.astype(np.float32), sigma).mean(axis=2).astype(np.float64)
-    b = scene_texture(reference_rgb, sigma).mean(axis=2).astype(np.float64)
+    a = scene_texture(image_rgb.astype(np.float32), sigma).mean(axis=2, dtype=np.float32)
+    b = scene_texture(reference_rgb, sigma).mean(axis=2, dtype=np.float32)
     covered: NDArray[np.bool_] = np.asarray(np.isfinite(reference_rgb).all(axis=2))
     rows = cell_edges(image_rgb.shape[0], options.patch_px)
     cols = cell_edges(image_rgb.shape[1], options.patch_px)
