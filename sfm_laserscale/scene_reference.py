@@ -34,8 +34,10 @@ from sfm_laserscale.model import Camera, Pose
 from sfm_laserscale.raycast import MeshRaycaster, pixel_rays
 from sfm_laserscale.scene_fit import SceneFitOptions
 
-#: rays cast at once (about 100 bytes each in flight)
+#: rays cast at once (about 100 bytes each in flight); on a cropped caster fewer, as its
+#: coverage check samples every ray along its length
 RAY_CHUNK = 1 << 20
+CROP_RAY_CHUNK = 1 << 13
 #: the views' levels are matched on every LEVEL_STRIDE-th pixel (rows and columns)
 LEVEL_STRIDE = 4
 
@@ -72,7 +74,9 @@ class SceneStageOptions:
     """How ``scale`` uses scene references (scene_stage.py). ``enabled``: render references
     and detect again; ``render``, ``fit``: the render's and the fit's options;
     ``min_coverage``: the share of the image the fitted reference must still cover to be
-    used; ``keep_png``: keep each used reference as a 16-bit RGBA PNG (alpha 0: unknown) for
+    used; ``max_whole_triangles``, ``crop_grid_px``: a larger mesh is cropped per image to
+    rays every ``crop_grid_px``;
+    ``keep_png``: keep each used reference as a 16-bit RGBA PNG (alpha 0: unknown) for
     ``--save-scene-references``."""
 
     enabled: bool = True
@@ -80,10 +84,17 @@ class SceneStageOptions:
     fit: SceneFitOptions = field(default_factory=SceneFitOptions)
     min_coverage: float = 0.05
     keep_png: bool = False
+    # a mesh of more triangles is cropped per laser image to the render's rays, cast every
+    # crop_grid_px then (footprints.py's limit: no caster on much more at once)
+    max_whole_triangles: int = 4_000_000
+    crop_grid_px: int = 8
 
     def __post_init__(self) -> None:
         if not 0 <= self.min_coverage <= 1:
             raise InputError(f"min_coverage must be in [0, 1], got {self.min_coverage}")
+        if self.max_whole_triangles < 0 or self.crop_grid_px < 1:
+            raise InputError("max_whole_triangles must be >= 0 and crop_grid_px >= 1, got "
+                             f"{self.max_whole_triangles} and {self.crop_grid_px}")
 
 
 
@@ -119,8 +130,9 @@ def grid_hits(camera: Camera, cam_from_world: Pose, caster: MeshRaycaster, step_
     xy_px = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
     xyz = np.full((len(xy_px), 3), np.nan)
     world_from_cam = cam_from_world.inverse()
-    for start in range(0, len(xy_px), RAY_CHUNK):
-        part = slice(start, start + RAY_CHUNK)
+    chunk = RAY_CHUNK if caster.coverage is None else CROP_RAY_CHUNK
+    for start in range(0, len(xy_px), chunk):
+        part = slice(start, start + chunk)
         origins, directions = pixel_rays(camera, world_from_cam, xy_px[part])
         cast = caster.cast(origins, directions)
         xyz[part] = np.where(cast.hit[:, None], cast.xyz, np.nan)

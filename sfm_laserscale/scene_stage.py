@@ -31,13 +31,15 @@ from sfm_laserscale.io.images import read_rgb
 from sfm_laserscale.io.meshes.mesh import TriangleMesh
 from sfm_laserscale.model import Camera, Pose, SparseModel
 from sfm_laserscale.provenance import progress_bar
-from sfm_laserscale.raycast import MeshRaycaster
+from sfm_laserscale.raycast import MeshRaycaster, crop_for_rays, pixel_rays
 from sfm_laserscale.rig import Rig
 from sfm_laserscale.run_types import ImageRun, SceneUse
 from sfm_laserscale.scene_fit import fit_reference
 from sfm_laserscale.scene_reference import (
     ModelView,
+    SceneReferenceOptions,
     SceneStageOptions,
+    grid_pixels,
     nearest_views,
     render_scene_reference,
 )
@@ -97,6 +99,33 @@ class ModelImages:
         return views, names
 
 
+class MeshCasters:
+    """Raycasters for the renders: one on the whole mesh when it has at most
+    ``max_whole_triangles``; else, per laser image, the mesh cropped exactly to the rays the
+    render casts (raycast.crop_for_rays), a grid every ``crop_grid_px`` (coarser than
+    ``render.grid_px``: the crop's working memory grows with its rays)."""
+
+    def __init__(self, mesh: TriangleMesh, options: SceneStageOptions) -> None:
+        self.mesh = mesh
+        self.options = options
+        self._whole: MeshRaycaster | None = None
+
+    def for_view(self, camera: Camera, cam_from_world: Pose
+                 ) -> tuple[MeshRaycaster, SceneReferenceOptions]:
+        """The caster to render the view ``camera`` at ``cam_from_world`` with, and the
+        render's options (its grid)."""
+        if len(self.mesh.triangles) <= self.options.max_whole_triangles:
+            if self._whole is None:
+                self._whole = MeshRaycaster(self.mesh.vertices, self.mesh.triangles)
+            return self._whole, self.options.render
+        step = max(self.options.crop_grid_px, self.options.render.grid_px)
+        xy = np.stack(np.meshgrid(grid_pixels(camera.width, step),
+                                  grid_pixels(camera.height, step)), axis=-1).reshape(-1, 2)
+        origins, directions = pixel_rays(camera, cam_from_world.inverse(), xy)
+        crop = crop_for_rays(self.mesh.vertices, self.mesh.triangles, origins, directions)
+        return crop.raycaster(), replace(self.options.render, grid_px=step)
+
+
 def reference_png(rgb: NDArray[np.float32]) -> bytes:
     """The reference as a 16-bit RGBA PNG (8-bit levels × 257), alpha 0 where it is unknown:
     what ``detect --scene`` reads (io.images.read_scene_reference)."""
@@ -117,7 +146,7 @@ def _registered(run: ImageRun) -> tuple[Camera, Pose] | None:
     return run.camera, reg.cam_from_world
 
 
-def detect_with_reference(run: ImageRun, rig: Rig, caster: MeshRaycaster, images: ModelImages,
+def detect_with_reference(run: ImageRun, rig: Rig, casters: MeshCasters, images: ModelImages,
                           detection: DetectionOptions, options: SceneStageOptions) -> ImageRun:
     """One registered laser image detected again with its scene reference, or as it was
     with the reason in ``run.scene``."""
@@ -128,7 +157,8 @@ def detect_with_reference(run: ImageRun, rig: Rig, caster: MeshRaycaster, images
     views, names = images.nearest(pose, options.render.n_views)
     if not views:
         return replace(run, scene=SceneUse(used=False, reason="no model image could be read"))
-    rendered = render_scene_reference(camera, pose, caster, views, options.render)
+    caster, render = casters.for_view(camera, pose)
+    rendered = render_scene_reference(camera, pose, caster, views, render)
     rgb = read_rgb(run.path)
     fit = fit_reference(rgb, rendered.rgb, options.fit)
     coverage = rendered.coverage * fit.kept_share
@@ -162,12 +192,12 @@ def detect_all_with_references(runs: Sequence[ImageRun], model: SparseModel,
     if not todo:
         return [replace(r, scene=SceneUse(used=False, reason=_skip_reason(r, manual)))
                 for r in runs]
-    caster = MeshRaycaster(mesh.vertices, mesh.triangles)
+    casters = MeshCasters(mesh, options)
     images = ModelImages(model, folder, keep=2 * options.render.n_views,
                          exclude=[r.name for r in runs])
     done = {}
     for r in progress_bar(progress, "scene references", iterable=todo, unit="img"):
-        done[r.name] = detect_with_reference(r, rig, caster, images, detection, options)
+        done[r.name] = detect_with_reference(r, rig, casters, images, detection, options)
         _log_use(done[r.name])
     return [done.get(r.name) or replace(r, scene=SceneUse(used=False,
                                                           reason=_skip_reason(r, manual)))

@@ -19,8 +19,10 @@ from sfm_laserscale.io.meshes.mesh import TriangleMesh
 from sfm_laserscale.model import Image, SparseModel, Spot
 from sfm_laserscale.rig import rig_from_dict
 from sfm_laserscale.run_types import ImageRun
+from sfm_laserscale.scene_fit import SceneFitOptions
 from sfm_laserscale.scene_reference import SceneStageOptions
 from sfm_laserscale.scene_stage import (
+    MeshCasters,
     ModelImages,
     detect_all_with_references,
     reference_png,
@@ -95,6 +97,48 @@ def test_a_registered_image_is_searched_again_with_its_reference(scene: dict[str
     assert np.abs(reference[known] - truth[known]).mean() < 1.0
 
 
+def _saved(png: bytes | None, path: Path) -> Path:
+    assert png is not None
+    path.write_bytes(png)
+    return path
+
+
+def test_a_large_mesh_is_cropped_per_image_to_the_same_render(scene: dict[str, Any],
+                                                              tmp_path: Path) -> None:
+    """Every mesh counted as large (max_whole_triangles 0): each image's render casts rays
+    every 8 px on the mesh cropped to them, and gives the reference the whole mesh gives, up
+    to the coarser grid's interpolation. The floor is a grid of 80 000 triangles, so that the
+    crop keeps a part of it."""
+    n = 201
+    xs = np.linspace(-3.0, 3.0, n)
+    gx, gy = np.meshgrid(xs, xs)
+    verts = np.stack([gx.ravel(), gy.ravel(), np.zeros(n * n)], axis=1)
+    k = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    tris = np.concatenate([np.stack([k, k + 1, k + n + 1], 1), np.stack([k, k + n + 1, k + n], 1)])
+    fine = TriangleMesh(verts, tris.astype(np.int32))
+    casters = MeshCasters(fine, SceneStageOptions(max_whole_triangles=0))
+    crop, render = casters.for_view(CAMERA, LASER_POSE)
+    assert crop.coverage is not None and len(crop.triangles) < 0.5 * len(tris)
+    assert render.grid_px == 8
+    runs = [_run(scene["root"] / "laser.png")]
+    args = (scene["model"], fine, RIG, scene["root"] / "images", [], DetectionOptions())
+    whole = detect_all_with_references(runs, *args, SceneStageOptions(keep_png=True))
+    cropped = detect_all_with_references(runs, *args, SceneStageOptions(
+        keep_png=True, max_whole_triangles=0))
+    assert whole[0].scene is not None and cropped[0].scene is not None
+    assert cropped[0].scene.used and whole[0].scene.used
+    a, b = (read_scene_reference(_saved(r.scene.png, tmp_path / f"{k}.png"))
+            for k, r in (("whole", whole[0]), ("cropped", cropped[0])))
+    known = np.isfinite(a[..., 0]) & np.isfinite(b[..., 0])
+    truth = _view(LASER_POSE)
+    # views' places interpolated over 8 px instead of 4: 0.4 levels apart on average, about
+    # 0.04 px of this texture (10 levels per px); both as near the truth
+    assert known.mean() > 0.97 and np.abs(a[known] - b[known]).mean() < 0.5
+    assert np.abs(b[known] - truth[known]).mean() < 1.0
+    [spot] = cropped[0].spots
+    assert np.hypot(spot.x - SPOT_XY[0], spot.y - SPOT_XY[1]) < 0.3
+
+
 def test_images_not_searched_again_say_why(scene: dict[str, Any], tmp_path: Path) -> None:
     laser = scene["root"] / "laser.png"
     hand = Spot(laser="L1", x=10.0, y=10.0, score=1.0, source="manual")
@@ -115,6 +159,18 @@ def test_images_not_searched_again_say_why(scene: dict[str, Any], tmp_path: Path
     out = detect_all_with_references([_run(laser)], *args, empty, [], DetectionOptions(),
                                      SceneStageOptions())
     assert out[0].scene is not None and out[0].scene.reason == "no model image could be read"
+
+
+def test_a_reference_that_does_not_fit_is_not_used(scene: dict[str, Any]) -> None:
+    """A fit that keeps nothing (every shift above a limit of 1e-6 px): the first detection
+    stands, and the reason says how much fitted."""
+    first = _run(scene["root"] / "laser.png")
+    strict = SceneStageOptions(fit=SceneFitOptions(max_shift_px=1e-6))
+    [out] = detect_all_with_references([first], scene["model"], scene["mesh"], RIG,
+                                       scene["root"] / "images", [], DetectionOptions(), strict)
+    assert out.scene is not None and not out.scene.used and out.scene.kept_share == 0.0
+    assert out.scene.reason == "the reference fits 0.0 % of the image (at least 5 % needed)"
+    assert out.spots == first.spots and out.detection is None
 
 
 def test_model_images_are_read_when_usable(scene: dict[str, Any], tmp_path: Path,
