@@ -1,7 +1,8 @@
 """``scale``: the model's metric scale from its laser images, and every output written.
 
-Chains readers -> detection -> registration -> ray casting -> methods -> fusion -> writers. It
-owns no maths; each stage is a function of its own module. ``run`` is the whole command; its
+Chains readers -> detection -> registration -> detection again against each image's scene
+reference -> ray casting -> methods -> fusion -> writers. It owns no maths; each stage is a
+function of its own module. ``run`` is the whole command; its
 inputs and options (:class:`~sfm_laserscale.run_types.ScaleInputs`,
 :class:`~sfm_laserscale.run_types.ScaleOptions`) are shared with the report writer, so they live
 in :mod:`sfm_laserscale.run_types`.
