@@ -45,13 +45,16 @@ class SceneFitOptions:
     neighbourhood's median residual ratio exceeds ``max_residual_ratio`` or its median
     |shift| exceeds ``max_shift_px``; ``min_known``: the share of a cell the reference must
     cover to be measured; ``texture_sigma_px``: the fine texture's scale (the detector's
-    ``scene_texture_sigma_px``)."""
+    ``scene_texture_sigma_px``); ``working_width_px``: the fit works on the images shrunk by
+    an integer factor to about this width, where the limits were measured (a 1 px shift at
+    1920 × 1080 is 2 px at 4000 × 3000: the same angle)."""
 
     patch_px: int = 64
     max_residual_ratio: float = 1.0
     max_shift_px: float = 1.0
     min_known: float = 0.5
     texture_sigma_px: float = 8.0
+    working_width_px: int = 1920
 
     def __post_init__(self) -> None:
         if self.patch_px < 16:
@@ -61,6 +64,8 @@ class SceneFitOptions:
                              f"{self.max_residual_ratio} and {self.max_shift_px}")
         if not 0 < self.min_known <= 1:
             raise InputError(f"min_known must be in (0, 1], got {self.min_known}")
+        if self.working_width_px < 1:
+            raise InputError(f"working_width_px must be >= 1, got {self.working_width_px}")
 
 
 @dataclass(frozen=True)
@@ -169,29 +174,53 @@ def _finite_stat(values: NDArray[np.float64], q: float) -> float:
     return float(np.percentile(finite, q)) if len(finite) else math.nan
 
 
+def working_factor(width_px: int, options: SceneFitOptions) -> int:
+    """The integer factor the fit shrinks an image by: about ``working_width_px`` wide."""
+    return max(1, round(width_px / options.working_width_px))
+
+
+def shrink(image_rgb: NDArray[np.floating] | NDArray[np.uint8],
+           factor: int) -> NDArray[np.float32]:
+    """(H, W, 3) averaged over ``factor`` × ``factor`` blocks (H // factor, W // factor, 3); a
+    block with an unknown (NaN) pixel is unknown."""
+    if factor == 1:
+        return np.asarray(image_rgb, dtype=np.float32)
+    height, width = (n // factor * factor for n in image_rgb.shape[:2])
+    blocks = np.asarray(image_rgb[:height, :width], dtype=np.float32).reshape(
+        height // factor, factor, width // factor, factor, 3)
+    return np.asarray(blocks.mean(axis=(1, 3)), dtype=np.float32)  # NaN propagates
+
+
 def fit_reference(image_rgb: NDArray[np.uint8], reference_rgb: NDArray[np.float32],
                   options: SceneFitOptions = SceneFitOptions()) -> ReferenceFit:  # noqa: B008
     """Measure the reference against the image per cell and drop it where it does not fit
-    (module docstring)."""
+    (module docstring). Both are first shrunk to about ``working_width_px`` wide by an
+    integer factor k; cells, texture scale and shift limit are in those pixels (k of the
+    image's), and the shifts returned in the image's."""
     if reference_rgb.shape != image_rgb.shape:
         raise InputError(f"the reference is {reference_rgb.shape}, the image {image_rgb.shape}")
+    k = working_factor(image_rgb.shape[1], options)
+    small_ref = shrink(reference_rgb, k)
     sigma = options.texture_sigma_px
-    a = scene_texture(image_rgb.astype(np.float32), sigma).mean(axis=2, dtype=np.float32)
-    b = scene_texture(reference_rgb, sigma).mean(axis=2, dtype=np.float32)
-    covered: NDArray[np.bool_] = np.asarray(np.isfinite(reference_rgb).all(axis=2))
-    rows = cell_edges(image_rgb.shape[0], options.patch_px)
-    cols = cell_edges(image_rgb.shape[1], options.patch_px)
+    a = scene_texture(shrink(image_rgb, k), sigma).mean(axis=2, dtype=np.float32)
+    b = scene_texture(small_ref, sigma).mean(axis=2, dtype=np.float32)
+    covered: NDArray[np.bool_] = np.asarray(np.isfinite(small_ref).all(axis=2))
+    rows = cell_edges(a.shape[0], options.patch_px)
+    cols = cell_edges(a.shape[1], options.patch_px)
     ratio = residual_ratios(a, b, covered, rows, cols, options.min_known)
-    shift = cell_shifts(a, b, covered, rows, cols, options.min_known)
+    shift = cell_shifts(a, b, covered, rows, cols, options.min_known) * k
     length = np.hypot(shift[..., 0], shift[..., 1])
     kept = ~((neighbourhood_median(ratio) > options.max_residual_ratio)
-             | (neighbourhood_median(length) > options.max_shift_px))
-    keep_px = kept[np.ix_(np.repeat(np.arange(len(rows) - 1), np.diff(rows)),
-                          np.repeat(np.arange(len(cols) - 1), np.diff(cols)))]
+             | (neighbourhood_median(length) > options.max_shift_px * k))
+    full_rows, full_cols = rows * k, cols * k
+    full_rows[-1], full_cols[-1] = image_rgb.shape[0], image_rgb.shape[1]  # the rims' rest
+    keep_px = kept[np.ix_(np.repeat(np.arange(len(rows) - 1), np.diff(full_rows)),
+                          np.repeat(np.arange(len(cols) - 1), np.diff(full_cols)))]
     rgb = np.where(keep_px[..., None], reference_rgb, np.float32(np.nan)).astype(np.float32)
-    before = int(covered.sum())
+    known = np.isfinite(reference_rgb).all(axis=2)
+    before = int(known.sum())
     return ReferenceFit(rgb=rgb, ratio=ratio, shift_px=shift, kept=kept,
                         ratio_median=_finite_stat(ratio, 50),
                         shift_median_px=_finite_stat(length, 50),
                         shift_p90_px=_finite_stat(length, 90),
-                        kept_share=int((covered & keep_px).sum()) / before if before else 0.0)
+                        kept_share=int((known & keep_px).sum()) / before if before else 0.0)

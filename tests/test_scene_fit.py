@@ -113,3 +113,18 @@ def test_bad_input_is_refused() -> None:
         SceneFitOptions(min_known=0.0)
     with pytest.raises(InputError, match="the reference is"):
         fit_reference(np.zeros((10, 10, 3), np.uint8), np.zeros((10, 12, 3), np.float32))
+
+
+def test_a_large_image_is_fitted_at_the_working_width() -> None:
+    """4000 px wide: the fit works at half size (k = 2), so its 1 px limit is 2 px of the
+    image (the same angle as 1 px at 1920 × 1080); shifts are returned in the image's px."""
+    wide = _texture(7, (512, 4000))
+    kept = fit_reference(_photo(_shifted(wide, 1.2, 0.9)), wide)
+    assert kept.ratio.shape == (4, 31)  # cells of 64 px at 2000 x 256
+    assert kept.shift_median_px == pytest.approx(1.5, abs=0.2) and kept.kept.all()
+    dropped = fit_reference(_photo(_shifted(wide, 2.4, 1.8)), wide)
+    # 1.5 working px on a 1 px texture: three steps read it short, still beyond the limit
+    assert 2.0 < dropped.shift_median_px < 3.2 and not dropped.kept.any()
+    odd = _texture(8, (515, 4001))  # the rims beyond whole blocks go with the last cells
+    fit = fit_reference(_photo(odd), odd)
+    assert fit.kept.all() and np.isfinite(fit.rgb).all() and fit.kept_share == 1.0
