@@ -100,6 +100,11 @@ def cell_sums(values: NDArray[np.floating], rows: NDArray[np.int64],
     return np.asarray(sums, dtype=np.float64)
 
 
+def pixel_cells(edges: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Per pixel along an axis, the index of its cell (cell ``i`` spans edges[i]:edges[i+1])."""
+    return np.repeat(np.arange(len(edges) - 1), np.diff(edges))
+
+
 def residual_ratios(a: NDArray[np.float32], b: NDArray[np.float32], known: NDArray[np.bool_],
                     rows: NDArray[np.int64], cols: NDArray[np.int64],
                     min_known: float) -> NDArray[np.float64]:
@@ -142,8 +147,7 @@ def cell_shifts(a: NDArray[np.float32], b: NDArray[np.float32], known: NDArray[n
     d = np.zeros((*usable.shape, 2))
     pix_c, pix_r = np.meshgrid(np.arange(a.shape[1], dtype=np.float32),
                                np.arange(a.shape[0], dtype=np.float32))
-    cell_r = np.repeat(np.arange(len(rows) - 1), np.diff(rows))
-    cell_c = np.repeat(np.arange(len(cols) - 1), np.diff(cols))
+    cell_r, cell_c = pixel_cells(rows), pixel_cells(cols)
     for _ in range(SHIFT_STEPS):
         dx = d[..., 0][np.ix_(cell_r, cell_c)].astype(np.float32)
         dy = d[..., 1][np.ix_(cell_r, cell_c)].astype(np.float32)
@@ -214,8 +218,7 @@ def fit_reference(image_rgb: NDArray[np.uint8], reference_rgb: NDArray[np.float3
              | (neighbourhood_median(length) > options.max_shift_px * k))
     full_rows, full_cols = rows * k, cols * k
     full_rows[-1], full_cols[-1] = image_rgb.shape[0], image_rgb.shape[1]  # the rims' rest
-    keep_px = kept[np.ix_(np.repeat(np.arange(len(rows) - 1), np.diff(full_rows)),
-                          np.repeat(np.arange(len(cols) - 1), np.diff(full_cols)))]
+    keep_px = kept[np.ix_(pixel_cells(full_rows), pixel_cells(full_cols))]
     rgb = np.where(keep_px[..., None], reference_rgb, np.float32(np.nan)).astype(np.float32)
     known = np.isfinite(reference_rgb).all(axis=2)
     before = int(known.sum())

@@ -122,12 +122,19 @@ def grid_pixels(size: int, step_px: int) -> NDArray[np.float64]:
     return np.linspace(0.5, size - 0.5, n)
 
 
+def grid_xy(camera: Camera, step_px: int) -> NDArray[np.float64]:
+    """The grid's pixel centres (rows, cols, 2; COLMAP x, y) every ``step_px``
+    (:func:`grid_pixels` along each axis)."""
+    xs, ys = grid_pixels(camera.width, step_px), grid_pixels(camera.height, step_px)
+    return np.stack(np.meshgrid(xs, ys), axis=-1)
+
+
 def grid_hits(camera: Camera, cam_from_world: Pose, caster: MeshRaycaster, step_px: int
               ) -> NDArray[np.float64]:
     """The mesh's first hit (model frame) through the pixel centres of a grid every
-    ``step_px`` (:func:`grid_pixels`): (rows, cols, 3), NaN where the ray misses."""
-    xs, ys = grid_pixels(camera.width, step_px), grid_pixels(camera.height, step_px)
-    xy_px = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
+    ``step_px`` (:func:`grid_xy`): (rows, cols, 3), NaN where the ray misses."""
+    grid = grid_xy(camera, step_px)
+    xy_px = grid.reshape(-1, 2)
     xyz = np.full((len(xy_px), 3), np.nan)
     world_from_cam = cam_from_world.inverse()
     chunk = RAY_CHUNK if caster.coverage is None else CROP_RAY_CHUNK
@@ -136,7 +143,7 @@ def grid_hits(camera: Camera, cam_from_world: Pose, caster: MeshRaycaster, step_
         origins, directions = pixel_rays(camera, world_from_cam, xy_px[part])
         cast = caster.cast(origins, directions)
         xyz[part] = np.where(cast.hit[:, None], cast.xyz, np.nan)
-    return xyz.reshape(len(ys), len(xs), 3)
+    return xyz.reshape(*grid.shape[:2], 3)
 
 
 def _grid_maps(camera: Camera, grid_shape: tuple[int, int]

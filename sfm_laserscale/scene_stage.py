@@ -30,6 +30,7 @@ from sfm_laserscale.errors import InputError
 from sfm_laserscale.io.images import read_rgb
 from sfm_laserscale.io.meshes.mesh import TriangleMesh
 from sfm_laserscale.model import Camera, Pose, SparseModel
+from sfm_laserscale.model_stage import registered_view
 from sfm_laserscale.provenance import progress_bar
 from sfm_laserscale.raycast import MeshRaycaster, crop_for_rays, pixel_rays
 from sfm_laserscale.rig import Rig
@@ -39,7 +40,7 @@ from sfm_laserscale.scene_reference import (
     ModelView,
     SceneReferenceOptions,
     SceneStageOptions,
-    grid_pixels,
+    grid_xy,
     nearest_views,
     render_scene_reference,
 )
@@ -56,7 +57,8 @@ class ModelImages:
         self.model = model
         self.folder = folder
         self.keep = max(keep, 1)
-        self.ids = sorted(i for i, im in model.images.items() if im.name not in set(exclude))
+        skip = set(exclude)
+        self.ids = sorted(i for i, im in model.images.items() if im.name not in skip)
         self.centres = np.array([model.images[i].cam_from_world.center for i in self.ids])
         self._views: OrderedDict[int, ModelView | None] = OrderedDict()
 
@@ -119,9 +121,8 @@ class MeshCasters:
                 self._whole = MeshRaycaster(self.mesh.vertices, self.mesh.triangles)
             return self._whole, self.options.render
         step = max(self.options.crop_grid_px, self.options.render.grid_px)
-        xy = np.stack(np.meshgrid(grid_pixels(camera.width, step),
-                                  grid_pixels(camera.height, step)), axis=-1).reshape(-1, 2)
-        origins, directions = pixel_rays(camera, cam_from_world.inverse(), xy)
+        origins, directions = pixel_rays(camera, cam_from_world.inverse(),
+                                         grid_xy(camera, step).reshape(-1, 2))
         crop = crop_for_rays(self.mesh.vertices, self.mesh.triangles, origins, directions)
         return crop.raycaster(), replace(self.options.render, grid_px=step)
 
@@ -139,18 +140,11 @@ def reference_png(rgb: NDArray[np.float32]) -> bytes:
     return bytes(buf)
 
 
-def _registered(run: ImageRun) -> tuple[Camera, Pose] | None:
-    reg = run.registration
-    if run.reason is not None or run.camera is None or reg is None or reg.cam_from_world is None:
-        return None
-    return run.camera, reg.cam_from_world
-
-
 def detect_with_reference(run: ImageRun, rig: Rig, casters: MeshCasters, images: ModelImages,
                           detection: DetectionOptions, options: SceneStageOptions) -> ImageRun:
     """One registered laser image detected again with its scene reference, or as it was
     with the reason in ``run.scene``."""
-    view = _registered(run)
+    view = registered_view(run)
     if view is None:
         return replace(run, scene=SceneUse(used=False, reason="not registered"))
     camera, pose = view
@@ -188,11 +182,9 @@ def detect_all_with_references(runs: Sequence[ImageRun], model: SparseModel,
     if folder is None:
         why = "no model images (give --images, or a pipeline folder with its images)"
         return [replace(r, scene=SceneUse(used=False, reason=why)) for r in runs]
-    todo = [r for r in runs if _registered(r) is not None and r.name not in set(manual)]
-    if not todo:
-        return [replace(r, scene=SceneUse(used=False, reason=_skip_reason(r, manual)))
-                for r in runs]
-    casters = MeshCasters(mesh, options)
+    by_hand = set(manual)
+    todo = [r for r in runs if registered_view(r) is not None and r.name not in by_hand]
+    casters = MeshCasters(mesh, options)  # its caster is built for the first render
     images = ModelImages(model, folder, keep=2 * options.render.n_views,
                          exclude=[r.name for r in runs])
     done = {}

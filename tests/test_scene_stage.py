@@ -67,7 +67,7 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
 
 
 def _run(path: Path, registered: bool = True, spots: tuple[Spot, ...] = ()) -> ImageRun:
-    reg: Any = SimpleNamespace(cam_from_world=LASER_POSE) if registered else None
+    reg: Any = SimpleNamespace(cam_from_world=LASER_POSE, success=True) if registered else None
     return ImageRun(name=path.name, path=path, camera=CAMERA, registration=reg,
                     detection=None, spots=spots, hits=(), spot_reasons={"L1": "not found"},
                     estimates=None, reason=None if registered else "registration failed")
