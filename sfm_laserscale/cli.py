@@ -556,6 +556,7 @@ def openmvg(**kw: Any) -> int:
 @click.option("--overwrite", is_flag=True, help="Redo models whose inputs and options are "
               "unchanged (skipped otherwise).")
 @click.option("--no-guided-spots", is_flag=True, help=_NO_GUIDED_HELP)
+@click.option("--no-scene-reference", is_flag=True, help=_NO_SCENE_HELP)
 @common_options
 def batch(**kw: Any) -> int:
     """Scale every model of a manifest (CSV) on Dask; one failed model never stops the others."""
@@ -563,7 +564,8 @@ def batch(**kw: Any) -> int:
 
     options = BatchOptions(jobs=kw["jobs"], scheduler=kw["scheduler"], method=kw["method"],
                            seed=kw["seed"], progress=not kw["quiet"],
-                           guided_spots=not kw["no_guided_spots"])
+                           guided_spots=not kw["no_guided_spots"],
+                           scene_reference=not kw["no_scene_reference"])
     result = run(BatchInputs(kw["manifest"]), kw["out"], options, overwrite=kw["overwrite"])
     click.echo(result.summary)
     return EXIT_OK if result.all_scaled else EXIT_NO_SCALE

@@ -110,12 +110,14 @@ def test_batch_scales_the_others_reports_the_broken_one_and_skips_on_rerun(
     code, _ = _batch(str(cruise / "manifest.csv"), "--out", str(out), "--jobs", "1")
     assert _summary(out)["roof"]["status"] == "ok" and not stale.exists()
 
-    # --no-guided-spots changes the options that decide the numbers: redone, without the search
-    code, _ = _batch(str(cruise / "manifest.csv"), "--out", str(out), "--jobs", "1",
-                     "--no-guided-spots")
-    assert _summary(out)["roof"]["status"] == "ok"
-    ran = json.loads((out / "roof" / "report.json").read_text())["provenance"]["options"]
-    assert ran["guided"]["enabled"] is False
+    # --no-guided-spots and --no-scene-reference change the options that decide the numbers:
+    # redone, without the search and without the second detection
+    for flag, key in (("--no-guided-spots", "guided"), ("--no-scene-reference", "scene")):
+        code, _ = _batch(str(cruise / "manifest.csv"), "--out", str(out), "--jobs", "1", flag)
+        assert _summary(out)["roof"]["status"] == "ok"
+        ran = json.loads((out / "roof" / "report.json").read_text())["provenance"]["options"]
+        assert ran[key]["enabled"] is False
+        assert ran["scene" if key == "guided" else "guided"]["enabled"] is True
     shutil.rmtree(out / "roof")
     code, _ = _batch(str(cruise / "manifest.csv"), "--out", str(out), "--jobs", "1")
 

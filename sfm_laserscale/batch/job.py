@@ -23,6 +23,7 @@ from sfm_laserscale.provenance import captured_log
 from sfm_laserscale.registration.options import SiftOptions
 from sfm_laserscale.registration.sift_workers import SiftWorkerOptions
 from sfm_laserscale.run_types import ScaleOptions
+from sfm_laserscale.scene_reference import SceneStageOptions
 
 logger = logging.getLogger(__name__)
 
@@ -39,6 +40,7 @@ class ModelJob:
     seed: int
     overwrite: bool  # redo even when nothing changed
     guided_spots: bool = True  # scale's search for missed spots where the model puts them
+    scene_reference: bool = True  # scale's second detection with the model images' render
 
 
 @dataclass(frozen=True)
@@ -67,7 +69,8 @@ def scale_options(job: ModelJob, threads: int) -> ScaleOptions:
     return ScaleOptions(method=job.method, seed=job.seed, progress=False,
                         sift=SiftOptions(num_threads=threads),
                         sift_workers=SiftWorkerOptions(workers=threads - 1),
-                        guided=GuidedSpotOptions(enabled=job.guided_spots))
+                        guided=GuidedSpotOptions(enabled=job.guided_spots),
+                        scene=SceneStageOptions(enabled=job.scene_reference))
 
 
 def outcome_from_report(name: str, status: str, report: dict[str, Any], wall_s: float,

@@ -44,6 +44,7 @@ class BatchOptions:
     seed: int = 0
     progress: bool = True
     guided_spots: bool = True  # scale's search for missed spots where the model puts them
+    scene_reference: bool = True  # scale's second detection with the model images' render
 
 
 @dataclass(frozen=True)
@@ -79,7 +80,8 @@ def run(inputs: BatchInputs, out_dir: Path, options: BatchOptions = BatchOptions
     # a model killed mid-run left no report.json, only a staging folder that its next scale
     # run removes (io/outputs.py): it is redone
     jobs = [ModelJob(row=r, out_dir=out_dir / r.name, method=r.method or options.method,
-                     seed=options.seed, overwrite=overwrite, guided_spots=options.guided_spots)
+                     seed=options.seed, overwrite=overwrite, guided_spots=options.guided_spots,
+                     scene_reference=options.scene_reference)
             for r in rows]
     jobs_n = min(jobs_n, len(jobs))  # no idle worker processes
     where = options.scheduler or (f"{jobs_n} local worker processes" if jobs_n > 1
