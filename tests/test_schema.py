@@ -31,13 +31,25 @@ def report(small_scale_run: Any) -> dict[str, Any]:
 
 
 def test_real_report_is_versioned_and_valid(report: dict[str, Any]) -> None:
-    assert report["schema_version"] == SCHEMA_VERSION == "1.1"
+    assert report["schema_version"] == SCHEMA_VERSION == "1.2"
     assert report["version"] == __version__
     assert report["units"]["scale"] == "metres per model unit"
     assert report["units"]["length"] == "metres"
     assert report["units"] == UNITS
     assert report_problems(report) == []
     validate_report(report)
+
+
+def test_each_detected_spot_names_the_rule_that_took_it(report: dict[str, Any]) -> None:
+    """Schema 1.2: ``images[].spots[].taken_by`` names the detector's rule for a detected spot
+    (the small scene's spots all stand on their own evidence), null for the others."""
+    spots = [s for im in report["images"] for s in im["spots"]]
+    assert spots
+    for spot in spots:
+        assert (spot["taken_by"] is not None) == (spot["source"] == "detected")
+    assert {s["taken_by"] for s in spots if s["source"] == "detected"} == {"own evidence"}
+    bad = _broken(report, ["images", 0, "spots", 0, "taken_by"], "by luck")
+    assert any("taken_by" in p for p in report_problems(bad))
 
 
 def _broken(report: dict[str, Any], path: list[Any], value: Any) -> dict[str, Any]:

@@ -16,7 +16,7 @@ from typing import Any
 import jsonschema
 
 #: The version of report.json's layout (not the package's version).
-SCHEMA_VERSION = "1.1"
+SCHEMA_VERSION = "1.2"
 
 #: report.json's ``units`` block.
 UNITS: dict[str, str] = {

@@ -16,6 +16,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from sfm_laserscale.detection.options import TAKEN_ON_OWN
 from sfm_laserscale.fusion import FusedScale
 from sfm_laserscale.geometry import qvec_from_rotmat
 from sfm_laserscale.io.colmap_write import write_scaled_colmap_model
@@ -25,6 +26,7 @@ from sfm_laserscale.io.openmvg import write_scaled_openmvg_sfm_data
 from sfm_laserscale.io.spots_csv import write_spots_csv
 from sfm_laserscale.io.transforms import write_matrix_4x4, write_sim3
 from sfm_laserscale.methods.pcm_joint import PairJointFit, PcmJointResult
+from sfm_laserscale.model import Spot
 from sfm_laserscale.provenance import progress_bar
 from sfm_laserscale.report.analysis import ReportChecksOptions, annotate
 from sfm_laserscale.report.html import render_html
@@ -166,6 +168,15 @@ def scene_file(image: str) -> str:
     return f"scene_references/{Path(image).stem}.png"
 
 
+def _taken_by(run: ImageRun, spot: Spot) -> str | None:
+    """The detector's rule that took a detected spot (options.TAKEN_ON_*); None for a spot
+    found by the guided search or given by hand."""
+    if spot.source != "detected" or run.detection is None:
+        return None
+    rules = {c.laser: c.taken_by for c in run.detection.candidates if c.taken_by}
+    return rules.get(spot.laser, TAKEN_ON_OWN)
+
+
 def _image_dict(run: ImageRun) -> dict[str, Any]:
     reg = run.registration
     pose = None if reg is None else reg.cam_from_world
@@ -186,6 +197,7 @@ def _image_dict(run: ImageRun) -> dict[str, Any]:
                 "score": _num(s.score),
                 "sigma_px": _num(s.sigma_px),
                 "source": s.source,
+                "taken_by": _taken_by(run, s),
             }
             for s in run.spots
         ],
