@@ -53,7 +53,8 @@ and mesh error), blurred by a Gaussian of BLUR px (resampling, the texture's res
 lit by a gain ramp of ±GAIN across the frame (lamps elsewhere). As in ``scale``, the
 reference is then kept only where it fits the frame (``scene_fit.fit_reference``: cells whose
 neighbourhood's residual texture is no smaller than the frame's, or shifted more than 1 px,
-are dropped); ``--no-scene-fit`` gives it whole.
+are dropped); ``--no-scene-fit`` gives it whole. ``--no-scene-scaling`` subtracts its texture
+unscaled (``DetectionOptions.scene_gain_sigma_px=None``) instead of scaled to the frame's light.
 
 ``run_benchmark`` (and ``run_small``, a reduced set for tests) can be imported through
 ``tests/script_loader.py``.
@@ -99,12 +100,15 @@ DEFAULT_SIZES = ((1920, 1080), (4000, 3000))
 class SceneReference:
     """How a scene reference rendered from the model differs from the seafloor it shows
     (:func:`as_rendered`): shift (px, random direction), Gaussian blur (px), gain ramp (±);
-    ``fit``: kept only where it fits the frame (``scene_fit.fit_reference``, as ``scale``)."""
+    ``fit``: kept only where it fits the frame (``scene_fit.fit_reference``, as ``scale``);
+    ``scaled``: its texture scaled to the frame's light (``DetectionOptions.scene_gain_sigma_px``;
+    ``gain`` is the ramp's, a property of the reference, not of the detector)."""
 
     shift_px: float = 0.5
     blur_px: float = 0.7
     gain: float = 0.1
     fit: bool = True
+    scaled: bool = True
 
 
 @dataclass(frozen=True)
@@ -330,7 +334,10 @@ def run_job(job: Job) -> dict[str, Any]:
     if scene_rgb is not None and job.scene is not None and job.scene.fit:
         fit = fit_reference(frame.image_rgb, scene_rgb)
         scene_rgb = fit.rgb
-    result = detect_spots(frame.image_rgb, camera, rig, DetectionOptions(), scene_rgb=scene_rgb)
+    options = DetectionOptions()
+    if job.scene is not None and not job.scene.scaled:
+        options = replace(options, scene_gain_sigma_px=None)
+    result = detect_spots(frame.image_rgb, camera, rig, options, scene_rgb=scene_rgb)
     t2 = time.perf_counter()
     rec = score_frame(frame, result)
     rec.update({"seed": job.seed, "condition": job.condition,
@@ -719,6 +726,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--no-scene-fit", action="store_true",
                     help="give the scene reference whole, without dropping the cells that do "
                          "not fit the frame (scale drops them: scene_fit.fit_reference)")
+    ap.add_argument("--no-scene-scaling", action="store_true",
+                    help="subtract the scene reference's texture unscaled, not scaled to the "
+                         "frame's light (DetectionOptions.scene_gain_sigma_px=None)")
     ap.add_argument("--compare", type=Path, default=None,
                     help="an earlier run's --out file: print what changed, frame by frame")
     args = ap.parse_args(argv)
@@ -727,7 +737,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if unknown:
         ap.error(f"unknown condition(s) {', '.join(unknown)}; known: {', '.join(CONDITIONS)}")
     reference = (None if args.scene_reference is None else
-                 replace(args.scene_reference, fit=not args.no_scene_fit))
+                 replace(args.scene_reference, fit=not args.no_scene_fit,
+                         scaled=not args.no_scene_scaling))
     t0 = time.perf_counter()
     records, rows = run_benchmark(conditions, args.sizes, args.per_condition, args.seed,
                                   args.workers, args.visibility, args.cache, args.cache_max_gb,

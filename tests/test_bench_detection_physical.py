@@ -338,11 +338,13 @@ def test_a_scene_reference_as_a_render_from_the_model(bench: ModuleType, tmp_pat
     assert bench.main([*args, "--out", str(plain)]) == 0
     assert bench.main([*args, "--out", str(scene), "--scene-reference", "0.5,0.7,0.1"]) == 0
     assert bench.main([*args, "--out", str(whole), "--scene-reference", "0.5,0.7,0.1",
-                       "--no-scene-fit"]) == 0
+                       "--no-scene-fit", "--no-scene-scaling"]) == 0
     saved = json.loads(scene.read_text())
     assert saved["scene_reference"] == {"shift_px": 0.5, "blur_px": 0.7, "gain": 0.1,
-                                        "fit": True}
+                                        "fit": True, "scaled": True}
     assert json.loads(whole.read_text())["scene_reference"]["fit"] is False
+    assert json.loads(whole.read_text())["scene_reference"] == {
+        "shift_px": 0.5, "blur_px": 0.7, "gain": 0.1, "fit": False, "scaled": False}
     assert json.loads(plain.read_text())["scene_reference"] is None
     # as scale does, the reference is kept where it fits the frame, and the fit is recorded
     [fitted] = saved["images"]

@@ -292,7 +292,8 @@ def detect_spots(
     unknown) on the image with that scene's texture removed (:mod:`.scene`)."""
     check_image(image_rgb, camera)
     if scene_rgb is not None:
-        image_rgb = remove_scene(image_rgb, scene_rgb, options.scene_texture_sigma_px)
+        image_rgb = remove_scene(image_rgb, scene_rgb, options.scene_texture_sigma_px,
+                                 options.scene_gain_sigma_px)
     region = search_region(camera, rig, options)
     measures = _measure_candidates(image_rgb, rig, region, options)
     trim_heap()  # the detection planes (~16 bytes per pixel) go back to the OS

@@ -182,7 +182,9 @@ class DetectionOptions:
       (:meth:`SigmaModel.choice`).
     - ``scene_texture_sigma_px``: with a scene reference (``detect_spots(..., scene_rgb=)``),
       its texture finer than this Gaussian sigma is subtracted from the image before
-      detection (:mod:`.scene`).
+      detection (:mod:`.scene`). ``scene_gain_sigma_px``: that texture is first scaled to
+      the image's own, per channel, by a least-squares gain over a Gaussian window of this
+      sigma (the image lit otherwise than the reference: lamp hot spots); None: unscaled.
     """
 
     min_range_m: float = 0.5
@@ -226,6 +228,7 @@ class DetectionOptions:
     sigma_floor_choice: float = FLOOR_CHOICE
     sigma_second_look_choice: float = SECOND_LOOK_CHOICE
     scene_texture_sigma_px: float = 8.0
+    scene_gain_sigma_px: float | None = 24.0
 
     @property
     def sigma_model(self) -> SigmaModel:
@@ -266,7 +269,7 @@ class DetectionOptions:
         if self.floor_min_spots < 2:
             raise InputError(f"floor_min_spots must be >= 2, got {self.floor_min_spots}")
         for name in ("band_px", "max_spot_radius_px", "floor_radius_px", "lone_floor_reach_px",
-                     "luma_separation_radii", "floor_weak_min_snr"):
+                     "luma_separation_radii", "floor_weak_min_snr", "scene_gain_sigma_px"):
             value = getattr(self, name)
             if value is not None and value <= 0:
                 raise InputError(f"{name} must be positive, got {value}")
