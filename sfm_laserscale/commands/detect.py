@@ -186,7 +186,7 @@ def _image_record(name: str, res: DetectionResult | None, review: float,
     if res is None:
         return {"name": name, "readable": False, "reason": reason or "not a readable image",
                 "spots": [], "missing": {}, "num_candidates": 0}
-    rules = {c.laser: c.taken_by for c in res.candidates if c.taken_by}
+    rules = res.taken_by()
     return {
         "name": name, "readable": True,
         "scene_reference": None if scene is None else str(scene),

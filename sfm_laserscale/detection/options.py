@@ -317,3 +317,8 @@ class DetectionResult:
     candidates: tuple[Candidate, ...]
     missing: dict[str, str] = field(default_factory=dict)
     near_misses: dict[str, tuple[Candidate, ...]] = field(default_factory=dict)
+
+    def taken_by(self) -> dict[str, str]:
+        """Laser -> the rule that took its spot (TAKEN_ON_OWN, TAKEN_ON_FLOOR,
+        TAKEN_ON_SECOND_LOOK)."""
+        return {c.laser: c.taken_by for c in self.candidates if c.laser and c.taken_by}

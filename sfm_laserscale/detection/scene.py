@@ -111,7 +111,12 @@ def low_pass(planes: NDArray[np.float32], sigma_px: float) -> NDArray[np.float32
 def scene_texture(scene_rgb: NDArray[np.floating], sigma_px: float) -> NDArray[np.float32]:
     """The reference's texture finer than ``sigma_px`` (H, W, 3; 8-bit levels; 0 where the
     reference is unknown): the reference minus its blur normalised over known pixels."""
-    known = np.isfinite(scene_rgb).all(axis=2)
+    return _texture(scene_rgb, np.isfinite(scene_rgb).all(axis=2), sigma_px)
+
+
+def _texture(scene_rgb: NDArray[np.floating], known: NDArray[np.bool_],
+             sigma_px: float) -> NDArray[np.float32]:
+    """:func:`scene_texture` with the reference's ``known`` (H, W) pixels given."""
     filled = np.where(known[..., None], scene_rgb, np.float32(0.0)).astype(np.float32)
     planes = np.concatenate([filled, known[..., None].astype(np.float32)], axis=2)
     step = _step(sigma_px)
@@ -125,18 +130,19 @@ def scene_texture(scene_rgb: NDArray[np.floating], sigma_px: float) -> NDArray[n
     return filled
 
 
-def texture_gain(image_rgb: NDArray[np.uint8], reference_texture: NDArray[np.float32],
-                 known: NDArray[np.bool_], sigma_px: float, gain_sigma_px: float
-                 ) -> NDArray[np.float32]:
+def texture_gain(image_rgb: NDArray[np.uint8] | NDArray[np.float32],
+                 reference_texture: NDArray[np.float32], known: NDArray[np.bool_],
+                 sigma_px: float, gain_sigma_px: float) -> NDArray[np.float32]:
     """The local least-squares gain (H, W, 3) of the image's texture finer than ``sigma_px``
     on the reference's (``reference_texture``), per channel over a Gaussian window of
     ``gain_sigma_px`` and the ``known`` (H, W) pixels where that channel is not clipped; 1
-    where under ``MIN_GAIN_SHARE`` of the window is usable (module docstring). The window's
-    sums are kept shrunk until the gain is formed: it is smooth."""
+    where under ``MIN_GAIN_SHARE`` of the window is usable (module docstring). The image is
+    uint8 or float 8-bit levels. The window's sums are kept shrunk until the gain is formed:
+    it is smooth."""
     shape = image_rgb.shape[:2]
-    image = image_rgb.astype(np.float32)
+    image = np.asarray(image_rgb, dtype=np.float32)  # no copy when float32 already
     image_texture = image - low_pass(image, sigma_px)
-    usable = (known[..., None] & (image_rgb < CLIPPED_LEVEL)).astype(np.float32)
+    usable = (known[..., None] & (image < CLIPPED_LEVEL)).astype(np.float32)
     weighted = reference_texture * usable
     step = _step(gain_sigma_px)
     covariance, variance, share = (
@@ -158,13 +164,13 @@ def remove_scene(image_rgb: NDArray[np.uint8], scene_rgb: NDArray[np.floating],
         raise InputError(f"the scene texture's sigma must be positive, got {sigma_px}")
     if gain_sigma_px is not None and not gain_sigma_px > 0:
         raise InputError(f"the scene gain's sigma must be positive, got {gain_sigma_px}")
-    image = image_rgb.astype(np.float32)
-    texture = scene_texture(scene_rgb, sigma_px)
+    out = image_rgb.astype(np.float32)
+    known = np.isfinite(scene_rgb).all(axis=2)
+    texture = _texture(scene_rgb, known, sigma_px)
     if gain_sigma_px is not None:
-        known = np.isfinite(scene_rgb).all(axis=2)
-        texture *= texture_gain(image_rgb, texture, known, sigma_px, gain_sigma_px)
-    out = image - texture
+        texture *= texture_gain(out, texture, known, sigma_px, gain_sigma_px)
+    out -= texture
     with np.errstate(invalid="ignore"):  # NaN (unknown) is not bright: its texture is 0
         kept = (image_rgb >= CLIPPED_LEVEL) & ~(scene_rgb >= SCENE_BRIGHT)
-    out[kept] = image[kept]
+    out[kept] = image_rgb[kept]
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)

@@ -173,8 +173,7 @@ def _taken_by(run: ImageRun, spot: Spot) -> str | None:
     found by the guided search or given by hand."""
     if spot.source != "detected" or run.detection is None:
         return None
-    rules = {c.laser: c.taken_by for c in run.detection.candidates if c.taken_by}
-    return rules.get(spot.laser, TAKEN_ON_OWN)
+    return run.detection.taken_by().get(spot.laser, TAKEN_ON_OWN)
 
 
 def _image_dict(run: ImageRun) -> dict[str, Any]:
