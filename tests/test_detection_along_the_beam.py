@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from sfm_laserscale.commands.detect import parse_camera
-from sfm_laserscale.detection import DetectionResult, detect_spots
+from sfm_laserscale.detection import DetectionResult, candidates, detect_spots
 from sfm_laserscale.rig import rig_from_dict
 from sfm_laserscale.synthetic.underwater import CONDITIONS, Frame, render_frame
 
@@ -31,22 +31,36 @@ def _frame(condition: str, index: int, seed: int = 0) -> tuple[Frame, DetectionR
 
 @pytest.fixture(scope="module")
 def faint_far_2() -> tuple[Frame, DetectionResult]:
-    """L3's spot (0.42 x white) 2 px from a maximum of a glow line judged too large (half-max
-    radius 12 px): it used to be dropped as 'part of the too-large blob'."""
+    """L3's spot (0.42 x white) 2 px from a maximum of a glow line whose half-max region,
+    against the background two largest spots out, is too large (12 px): it used to be dropped
+    as 'part of the too-large blob'."""
     return _frame("faint_far", 2)
 
 
+def _l3_found(frame: Frame, res: DetectionResult) -> None:
+    truth = frame.truth["L3"]
+    assert truth is not None
+    got = {s.laser: s for s in res.spots}
+    assert "L3" in got, res.missing.get("L3")
+    assert math.dist((got["L3"].x, got["L3"].y), truth) < 1.0
+
+
 def test_a_spot_beside_a_too_large_glow_is_measured_and_found(
-        faint_far_2: tuple[Frame, DetectionResult]) -> None:
+        faint_far_2: tuple[Frame, DetectionResult], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Measured against its own surroundings (``candidates.LOCAL_RADII``), the glow's maximum
+    is the spot; measured against the far background alone, it is too large, and the spot's
+    own maximum within its radius is measured, not dropped as a repeat of it."""
     frame, res = faint_far_2
+    _l3_found(frame, res)
+    monkeypatch.setattr(candidates, "LOCAL_RADII", ())
+    rig = rig_from_dict(tomllib.loads(frame.rig_toml))
+    res = detect_spots(frame.image_rgb, parse_camera(frame.camera_spec), rig)
     truth = frame.truth["L3"]
     assert truth is not None
     glow = [c for c in res.candidates if c.reason.startswith("too large")
             and math.dist((c.x, c.y), truth) < c.radius_px]
     assert glow  # the spot lies within a too-large blob's radius
-    got = {s.laser: s for s in res.spots}
-    assert "L3" in got, res.missing.get("L3")
-    assert math.dist((got["L3"].x, got["L3"].y), truth) < 1.0
+    _l3_found(frame, res)
 
 
 def test_reasons_name_positions_in_image_pixels() -> None:

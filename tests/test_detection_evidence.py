@@ -18,13 +18,16 @@ from sfm_laserscale.detection import (
     detect_spots,
     joint,
 )
+from sfm_laserscale.detection import candidates as candidates_module
 from sfm_laserscale.detection import detect as detect_module
 from sfm_laserscale.detection.beams import beam_samples, range_along_beam, scene_mask
 from sfm_laserscale.detection.joint import (
     ALL_WHITENED_BEAM,
+    ALL_WHITENED_RANGE_LN,
     ALL_WHITENED_WIDE_BEAM,
     BACKED_BEAM,
     DEPTH,
+    PAIR_BEAM,
     PAIRS_TRIED,
     PLAIN_PAIR_MIN_SCORE,
     RESCUE_BESIDE_ONE_BEAM,
@@ -36,9 +39,12 @@ from sfm_laserscale.detection.joint import (
     plain_pair_value,
     plain_pairs,
     range_term,
+    whitened_pair_value,
     whitened_pairs,
     why_not_rescued,
+    wide_floor,
 )
+from sfm_laserscale.detection.options import Candidate, DetectionResult
 from sfm_laserscale.detection.score import UNMEASURED_UNCLIPPED, AddedLight, colour_evidence
 from sfm_laserscale.model import Camera, Spot
 from sfm_laserscale.report.overlays import draw_overlay, near_misses
@@ -208,6 +214,31 @@ def test_a_core_rescued_beside_one_spot_lies_on_its_beam() -> None:
     assert _taken(two) == {"A": 0, "B": 1, "C": 2}
 
 
+def test_cores_beside_one_spot_on_a_four_beam_floor_may_lie_off_their_lines() -> None:
+    """Seed 3's `clipped_cores` 1: L1's spot on its own evidence, L2's and L4's whitened cores
+    at its range, and L3's core at that range too but 0.21 band_px off its line. Beside a
+    single spot a core must lie within RESCUE_BESIDE_ONE_BEAM, but four options on their lines
+    (ALL_WHITENED_WIDE_BEAM) at one range (ALL_WHITENED_RANGE_LN) are a four-beam scaler's
+    floor, which four whitened cores alone may be; three are not."""
+    def core(i: int, range_m: float, share: float) -> Option:
+        return Option(i, 0.05, range_m, rescue=0.7, beam_share=share)
+
+    spot = Option(0, 0.9, 2.15, beam_share=0.04)
+    off_line = core(3, 2.16, RESCUE_BESIDE_ONE_BEAM + 0.01)
+    four = {"L1": [spot], "L2": [core(1, 2.19, 0.12)], "L4": [core(2, 2.20, 0.06)],
+            "L3": [off_line]}
+    assert wide_floor({n: o[0] for n, o in four.items()})
+    assert _taken(four) == {"L1": 0, "L2": 1, "L3": 3, "L4": 2}
+    three = {n: o for n, o in four.items() if n != "L4"}
+    assert _taken(three) == {"L1": 0, "L2": 1}
+    assert why_not_rescued("L3", off_line, choose_jointly(three, 0.25), 0.25).startswith(
+        "0.21 band_px from its beam's image beside a single spot")
+    across = replace(off_line, beam_share=ALL_WHITENED_WIDE_BEAM + 0.01)
+    assert _taken(four | {"L3": [across]}) == {"L1": 0, "L2": 1, "L4": 2}
+    apart = replace(off_line, range_m=2.16 * math.exp(2.5 * ALL_WHITENED_RANGE_LN))
+    assert not wide_floor({"L1": spot, "L2": four["L2"][0], "L4": four["L4"][0], "L3": apart})
+
+
 def test_a_core_not_rescued_says_which_test_it_failed() -> None:
     """The reason a whitened core was not taken at its laser's colour names the rescue's test
     it failed against the spots chosen (the missing laser's explanation shows it)."""
@@ -337,20 +368,25 @@ def test_four_whitened_cores_may_lie_farther_from_their_beams_than_three() -> No
     assert four is not None and sorted(four[1].chosen) == ["L1", "L2", "L3", "L4"]
     beyond = ALL_WHITENED_WIDE_BEAM + 0.01
     assert all_whitened_value(combo([0.03, beyond, between, 0.04]), 0.25) is None
-    # a pair is never widened: it is a floor to search, not a choice
-    assert all_whitened_value(combo([between, 0.03]), 0.25, 2) is None
+    # two alone are never a choice; as a floor to search they may lie within PAIR_BEAM
+    assert all_whitened_value(combo([between, 0.03]), 0.25) is None
+    assert whitened_pair_value(combo([between, 0.03]), 0.25) is not None
+    assert whitened_pair_value(combo([PAIR_BEAM + 0.01, 0.03]), 0.25) is None
 
 
-@pytest.mark.parametrize(("seed", "index", "narrower"), [(2, 7, ALL_WHITENED_BEAM),
-                                                          (12, 18, 0.15)])
+@pytest.mark.parametrize(("seed", "index", "narrower", "paired"),
+                         [(2, 7, ALL_WHITENED_BEAM, True), (12, 18, 0.15, False)])
 def test_four_whitened_cores_are_found_on_physical_frames(
-        monkeypatch: pytest.MonkeyPatch, seed: int, index: int, narrower: float) -> None:
+        monkeypatch: pytest.MonkeyPatch, seed: int, index: int, narrower: float,
+        paired: bool) -> None:
     """Four clipped cores whose rims read white, at one range, on frames of `clipped_cores` at
     1920 x 1080. Seed 2's 7 (a draw no rule was written on; 8-49 x white): two of them 0.107
     and 0.115 band_px from their beams' images. Seed 12's 18 (1.68-1.82 m): two 0.205 and 0.22
     band_px off (the rig's 0.05 degree calibration error is about 0.1 band_px). All four are
     found within 0.5 px as whitened cores alone; held to a ``narrower`` line limit (three
-    cores' for the first, the previous 0.15 for the second), none is."""
+    cores' for the first, the previous 0.15 for the second), none is, unless two of them are
+    a floor to search (PAIR_BEAM) that holds the other two (``paired``: the first; in the
+    second the floors through its pairs hold at most one of the other two)."""
     frame, camera, rig = _physical("clipped_cores", seed, index)
     res = detect_spots(frame.image_rgb, camera, rig)
     _all_found(frame, res.spots, 0.5)
@@ -358,6 +394,13 @@ def test_four_whitened_cores_are_found_on_physical_frames(
     assert all("one of 4 such cores on their beams' lines at one range" in c.reason
                for c in taken), [c.reason for c in taken]
     monkeypatch.setattr(joint, "ALL_WHITENED_WIDE_BEAM", narrower)
+    res = detect_spots(frame.image_rgb, camera, rig)
+    if paired:
+        _all_found(frame, res.spots, 1.0)
+        assert sum("one of 2 such cores" in c.reason for c in res.candidates if c.laser) == 2
+    else:
+        assert res.spots == ()
+    monkeypatch.setattr(joint, "PAIR_BEAM", narrower)
     assert detect_spots(frame.image_rgb, camera, rig).spots == ()
 
 
@@ -369,10 +412,18 @@ def test_two_whitened_cores_on_their_beams_at_one_range_are_a_floor_to_search() 
         return Option(i, 0.05, range_m, rescue=rescue, beam_share=share)
 
     options = {"A": [core(0, 2.50, 0.07)], "B": [core(1, 2.55, 0.01, 0.45)],
-               "C": [core(2, 2.50, 0.3)],  # across its band: a glint
+               "C": [core(2, 2.50, PAIR_BEAM + 0.02)],  # across its band: a glint
                "D": [core(3, 3.00, 0.02), core(4, 2.52, 0.05, 0.2)]}  # another range; weak
     pairs = whitened_pairs(options, 0.25)
     assert [sorted(p.chosen) for p in pairs] == [["A", "B"]]
+    # a pair's cores may lie up to PAIR_BEAM from their lines, farther than three's may
+    assert PAIR_BEAM > ALL_WHITENED_BEAM
+    options["C"] = [core(2, 2.50, PAIR_BEAM - 0.02)]
+    assert all_whitened_value({n: replace(o[0], rescued=True) for n, o in options.items()
+                               if n != "D"}, 0.25) is None
+    assert [sorted(p.chosen) for p in whitened_pairs(options, 0.25)] == [
+        ["A", "C"], ["A", "B"], ["B", "C"]]
+    options.pop("C")
     assert all(o.rescued for o in pairs[0].chosen.values())
     assert pairs[0].floor_m == pytest.approx(2.525)
     # best total first; one candidate is never both lasers' core
@@ -597,6 +648,42 @@ def test_a_spot_on_a_bright_patch_is_measured_against_the_patch_at_the_expected_
     row, col = np.unravel_index(np.argmax(flat[50:70, 50:70]), (20, 20))
     blob = local_shape(flat, int(row) + 50, int(col) + 50, 1.5)
     assert blob is None or blob.snr < 5.0
+
+
+def test_a_clipped_core_on_a_hot_spot_s_crest_is_measured_against_its_surroundings(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A clipped core (σ 1.3 px) on the crest of a strobe's hot spot (σ 50 px) that lifts the
+    water to 254 levels of blue: against the background two largest spots out, the core's
+    half-maximum region on the brightness is the hot spot (too large), and only the colour
+    response's weak blob is left there; against its own surroundings at LOCAL_RADII × the
+    largest spot radius it is a spot of the core's size, and it is found."""
+    rng = np.random.default_rng(3)
+    rig = _rig()
+    x, y = _xy(rig, 2.5)
+    yy, xx = np.mgrid[0:CAMERA.height, 0:CAMERA.width] + 0.5
+    r2 = (xx - x) ** 2 + (yy - y) ** 2
+    img = _flat(0.004, rng)
+    img += (0.66 * np.exp(-0.5 * r2 / 50.0**2))[..., None].astype(np.float32)
+    img += (3.0 * np.exp(-0.5 * r2 / 1.3**2))[..., None].astype(np.float32) * np.array(
+        [0.6, 1.0, 0.8], np.float32)
+    image = to_uint8(img)
+    assert image[int(y) + 8, int(x)].tolist() == [181, 243, 254]
+
+    def at_spot(res: DetectionResult) -> list[Candidate]:
+        return [c for c in res.candidates
+                if c.source == "bright" and math.dist((c.x, c.y), (x, y)) < 1.0]
+
+    res = detect_spots(image, CAMERA, rig)
+    assert [s.laser for s in res.spots] == ["L1"]
+    assert math.dist((res.spots[0].x, res.spots[0].y), (x, y)) < 0.5
+    core = at_spot(res)[0]
+    assert core.reason.startswith("assigned to L1") and 2.0 < core.radius_px < 4.5
+    monkeypatch.setattr(candidates_module, "LOCAL_RADII", ())
+    res = detect_spots(image, CAMERA, rig)
+    assert "L1" not in {s.laser for s in res.spots}
+    assert at_spot(res) == []  # too large, it lost to the colour response's weak blob there
+    weak = [c for c in res.candidates if math.dist((c.x, c.y), (x, y)) < 1.0]
+    assert [c.source for c in weak] == ["colour"] and weak[0].score < 0.25
 
 
 def test_an_elongated_clipped_core_is_read_on_its_outline() -> None:

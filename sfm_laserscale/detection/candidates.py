@@ -55,6 +55,7 @@ from sfm_laserscale.detection.score import (
     contrast_term,
 )
 from sfm_laserscale.detection.shape import (
+    TOO_LARGE,
     Blob,
     expected_support_px,
     local_shape,
@@ -66,6 +67,10 @@ F32 = NDArray[np.float32]
 #: 4:2:0 chroma and the sensor's spectral crosstalk whiten a bright core and its rim, whatever
 #: its size
 WHITENED_MAX_COLOUR = 0.5
+#: half-max radii, as shares of the largest spot radius (2 and 4 px at 1920 × 1080), at which
+#: a blob too large against the far background is measured against its own surroundings
+#: where the image's other spots give no radius (:func:`_shape`)
+LOCAL_RADII = (1.0 / 16.0, 1.0 / 8.0)
 #: maxima below the clutter gate measured for the second look, per response
 SECOND_LOOK_MAX = 12
 #: local maxima of a response are listed from this many robust σ of its DoG over the crop
@@ -205,9 +210,11 @@ def _shape(m: Measure, plane: F32, bright_plane: F32 | None, planes: Planes,
            rc: tuple[int, int], options: DetectionOptions, region: SearchRegion) -> Blob:
     """Shape of a maximum on its own response; a blob whose laser channel clips and that fails
     there (a colour response flat over a wide clipped halo) is measured on the brightness.
-    Where the image's other spots give the radius to expect (``region.spot_radius_px``), a
-    blob that fails against the far background is measured against its own surroundings
-    (:func:`.shape.local_shape`) and taken when it stands ``min_snr`` above them."""
+    A blob that fails against the far background is measured against its own surroundings
+    (:func:`.shape.local_shape`) and taken when it stands ``min_snr`` above them: at the radius
+    the image's other spots give (``region.spot_radius_px``), or else, for a blob too large
+    there (a small core on a strobe's hot spot or a lit slope, whose half-maximum region runs
+    into its bright surroundings), at LOCAL_RADII × the largest spot radius, smallest first."""
     row, col = rc
     blob = shape_and_contrast(plane, row, col, region.max_radius, options.max_annulus_ratio)
     core = planes.clipped_laser[max(0, row - 2):row + 3, max(0, col - 2):col + 3]
@@ -216,10 +223,19 @@ def _shape(m: Measure, plane: F32, bright_plane: F32 | None, planes: Planes,
             and plane is not bright_plane):
         plane = bright_plane
         blob = shape_and_contrast(plane, row, col, region.max_radius, options.max_annulus_ratio)
-    if region.spot_radius_px is None or (blob.rejection is None and blob.snr >= options.min_snr):
+    if blob.rejection is None and blob.snr >= options.min_snr:
         return blob
-    local = local_shape(plane, row, col, region.spot_radius_px)
-    return local if local is not None and local.snr >= options.min_snr else blob
+    if region.spot_radius_px is not None:
+        radii: tuple[float, ...] = (region.spot_radius_px,)
+    elif blob.rejection is not None and blob.rejection.startswith(TOO_LARGE):
+        radii = tuple(share * region.max_radius for share in LOCAL_RADII)
+    else:
+        return blob
+    for radius in radii:
+        local = local_shape(plane, row, col, radius)
+        if local is not None and local.snr >= options.min_snr:
+            return local
+    return blob
 
 
 def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,

@@ -33,7 +33,9 @@ each candidate to one laser (:func:`combination_value`):
   anywhere along a band, a laser's spot at the range of the other spots. Beside a single option
   taken on its own evidence, a rescued core must also lie within RESCUE_BESIDE_ONE_BEAM ×
   ``band_px`` of its beam's image, where nearly every laser's spot lies: one option's range is
-  weak backing, and a band dense with glints holds one at any range. Whitened cores that
+  weak backing, and a band dense with glints holds one at any range; unless the combination
+  holds ALL_WHITENED_WIDE_MIN options or more on their lines at one range, as four whitened
+  cores alone may be taken (:func:`wide_floor`). Whitened cores that
   agree only with each other are taken only as a combination of ALL_WHITENED_MIN or more, each
   within ALL_WHITENED_BEAM × ``band_px`` (how far a spot may lie from its beam's image) of that
   image and all within ALL_WHITENED_RANGE_LN of their median range (:func:`all_whitened_value`;
@@ -41,10 +43,12 @@ each candidate to one laser (:func:`combination_value`):
   at 4000 × 3000 the bands hold enough glints that three or four of them agree within 15 % in
   most laser-free frames, but not on their beams' lines as well (a laser's spot lies on its
   beam within the rig's calibration error, a glint anywhere across the band). Two such cores
-  alone (:func:`whitened_pairs`) are a floor to search the other beams on: they are taken
-  where the search finds PAIR_FLOOR_SPOTS other lasers' spots on it (:mod:`.detect`). So are
+  alone, each within PAIR_BEAM × ``band_px`` of its beam's image (:func:`whitened_pairs`), are
+  a floor to search the other beams on: they are taken where the search finds
+  PAIR_FLOOR_SPOTS other lasers' spots on it (:mod:`.detect`). So are
   two options that are not whitened cores (:func:`plain_pairs`), each worth
-  PLAIN_PAIR_MIN_SCORE and held to the same tests of place, where the search finds
+  PLAIN_PAIR_MIN_SCORE and held to the tests of place of three whitened cores (within
+  ALL_WHITENED_BEAM of their lines, at one range), where the search finds
   PLAIN_PAIR_FLOOR_SPOTS: faint far spots, each too weak to be taken alone, that sit where
   one floor puts them.
 - an option taken on its own evidence that no other such option agrees with is judged
@@ -111,6 +115,12 @@ BACKED_BEAM = 0.3
 #: two such cores alone are taken when the floor through them holds this many other lasers'
 #: spots (:func:`whitened_pairs`; the floor search, :mod:`.detect`)
 PAIR_FLOOR_SPOTS = 2
+#: … and each lies within this many ``band_px`` of its beam's image, as four such cores may
+#: (ALL_WHITENED_WIDE_BEAM): the two spots the floor search must find, not the pair's place,
+#: tell two lasers' cores from two glints; at ALL_WHITENED_BEAM, which holds two true cores in
+#: three, a pair of true cores passed in four frames of nine (docs/DETECTION_ROUNDS.md, "The
+#: forty-fourth round")
+PAIR_BEAM = ALL_WHITENED_WIDE_BEAM
 #: at most this many pairs of whitened cores are searched for that, best first
 PAIRS_TRIED = 10
 #: two options that are not whitened cores, each worth this much (every evidence term but
@@ -271,7 +281,8 @@ def combination_value(combo: dict[str, Option], min_score: float,
     rescues = [o for o in combo.values() if o.rescued]
     if not plain:
         return all_whitened_value(combo, min_score)
-    if len(plain) == 1 and any(o.beam_share > RESCUE_BESIDE_ONE_BEAM for o in rescues):
+    if (len(plain) == 1 and any(o.beam_share > RESCUE_BESIDE_ONE_BEAM for o in rescues)
+            and not wide_floor(combo)):
         return None
     depth = _depths(combo)
     rescue_values = [o.rescue * depth[n] for n, o in combo.items() if o.rescued]
@@ -308,16 +319,26 @@ def _on_lines_at_one_range(opts: list[Option], beam_limit: float) -> float | Non
     return ref
 
 
-def all_whitened_value(combo: dict[str, Option], min_score: float,
-                       min_count: int = ALL_WHITENED_MIN) -> tuple[float, Choice] | None:
+def wide_floor(combo: dict[str, Option]) -> bool:
+    """Whether ALL_WHITENED_WIDE_MIN options or more lie within ALL_WHITENED_WIDE_BEAM ×
+    ``band_px`` of their beams' images and within ALL_WHITENED_RANGE_LN of their median range:
+    the place of a four-beam scaler's spots on one floor, which four whitened cores alone may
+    take (:func:`all_whitened_value`)."""
+    opts = list(combo.values())
+    return (len(opts) >= ALL_WHITENED_WIDE_MIN
+            and _on_lines_at_one_range(opts, ALL_WHITENED_WIDE_BEAM) is not None)
+
+
+def all_whitened_value(combo: dict[str, Option], min_score: float
+                       ) -> tuple[float, Choice] | None:
     """(total value, choice) of a combination of whitened cores alone (every option
-    ``rescued``), or None: it needs ``min_count`` options or more, each within
+    ``rescued``), or None: it needs ALL_WHITENED_MIN options or more, each within
     ALL_WHITENED_BEAM × ``band_px`` of its beam's image (ALL_WHITENED_WIDE_BEAM for
     ALL_WHITENED_WIDE_MIN options or more: four glints agree by chance far more rarely than
     three), all within ALL_WHITENED_RANGE_LN of their median range (its floor range), and each
     worth ``min_score`` with its depth term."""
     opts = list(combo.values())
-    if len(opts) < min_count:
+    if len(opts) < ALL_WHITENED_MIN:
         return None
     wide = len(opts) >= ALL_WHITENED_WIDE_MIN
     ref = _on_lines_at_one_range(opts, ALL_WHITENED_WIDE_BEAM if wide else ALL_WHITENED_BEAM)
@@ -337,15 +358,26 @@ def _valued_at(combo: dict[str, Option], ref_m: float, worth: Callable[[Option],
     return sum(values), Choice(combo, ref_m, depth, dict.fromkeys(combo, ref_m))
 
 
+def whitened_pair_value(combo: dict[str, Option], min_score: float
+                        ) -> tuple[float, Choice] | None:
+    """(total value, choice) of two whitened cores (``rescued``), or None: each within
+    PAIR_BEAM × ``band_px`` of its beam's image, both within ALL_WHITENED_RANGE_LN of their
+    median range, each worth ``min_score`` with its depth term."""
+    ref = _on_lines_at_one_range(list(combo.values()), PAIR_BEAM)
+    if ref is None:
+        return None
+    return _valued_at(combo, ref, lambda o: o.rescue, min_score)
+
+
 def whitened_pairs(options: dict[str, list[Option]], min_score: float) -> list[Choice]:
-    """Pairs of whitened cores of two lasers that pass :func:`all_whitened_value`'s tests but
-    for their number (on their beams' lines, at one range, each worth ``min_score``), best
-    total first, at most PAIRS_TRIED: each is a floor to search the other beams on. Two cores
-    agree by chance in some laser-free frames; all the other spots where their floor puts them
-    do not (:mod:`.detect`)."""
+    """Pairs of whitened cores of two lasers that pass :func:`whitened_pair_value` (near their
+    beams' lines, at one range, each worth ``min_score``), best total first, at most
+    PAIRS_TRIED: each is a floor to search the other beams on. Two cores agree by chance in
+    some laser-free frames; all the other spots where their floor puts them do not
+    (:mod:`.detect`)."""
     cores = [(n, replace(o, rescued=True)) for n, opts in options.items() for o in opts
              if o.rescue >= min_score]
-    return _best_pairs(cores, lambda pair: all_whitened_value(pair, min_score, 2))
+    return _best_pairs(cores, lambda pair: whitened_pair_value(pair, min_score))
 
 
 def _best_pairs(cands: list[tuple[str, Option]],
@@ -426,7 +458,8 @@ def why_not_rescued(name: str, o: Option, choice: Choice, min_score: float) -> s
     plain = {n: p for n, p in choice.chosen.items() if not p.rescued and n != name}
     if not plain:
         return NOTHING_BESIDE
-    if len(plain) == 1 and o.beam_share > RESCUE_BESIDE_ONE_BEAM:
+    if (len(plain) == 1 and o.beam_share > RESCUE_BESIDE_ONE_BEAM
+            and not wide_floor(choice.chosen | {name: o})):
         return (f"{o.beam_share:.2f} band_px from its beam's image beside a single spot "
                 f"(at most {RESCUE_BESIDE_ONE_BEAM:g})")
     if not agrees(o.range_m, choice.floor_m):
