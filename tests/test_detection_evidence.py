@@ -46,6 +46,7 @@ from sfm_laserscale.detection.joint import (
 )
 from sfm_laserscale.detection.options import Candidate, DetectionResult
 from sfm_laserscale.detection.score import UNMEASURED_UNCLIPPED, AddedLight, colour_evidence
+from sfm_laserscale.detection.shape import TOO_LARGE
 from sfm_laserscale.model import Camera, Spot
 from sfm_laserscale.report.overlays import draw_overlay, near_misses
 from sfm_laserscale.rig import Rig, rig_from_dict
@@ -653,37 +654,42 @@ def test_a_spot_on_a_bright_patch_is_measured_against_the_patch_at_the_expected_
 def test_a_clipped_core_on_a_hot_spot_s_crest_is_measured_against_its_surroundings(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """A clipped core (σ 1.3 px) on the crest of a strobe's hot spot (σ 50 px) that lifts the
-    water to 254 levels of blue: against the background two largest spots out, the core's
-    half-maximum region on the brightness is the hot spot (too large), and only the colour
-    response's weak blob is left there; against its own surroundings at LOCAL_RADII × the
-    largest spot radius it is a spot of the core's size, and it is found."""
-    rng = np.random.default_rng(3)
+    water to 254 levels of blue, with the sensor's clip at 255: against the background two
+    largest spots out, the core's half-maximum region on the brightness is the hot spot (too
+    large), and only the colour response's wide blob is left there; against its own
+    surroundings at LOCAL_RADII × the largest spot radius it is a blob of the core's size.
+    Where the surroundings clip (LOCAL_CLIPPED_MAX; a hot spot that clips green and blue at
+    the default clip level) they are not measured against: such a core was taken 1.5 px off."""
     rig = _rig()
     x, y = _xy(rig, 2.5)
     yy, xx = np.mgrid[0:CAMERA.height, 0:CAMERA.width] + 0.5
-    r2 = (xx - x) ** 2 + (yy - y) ** 2
-    img = _flat(0.004, rng)
-    img += (0.66 * np.exp(-0.5 * r2 / 50.0**2))[..., None].astype(np.float32)
-    img += (3.0 * np.exp(-0.5 * r2 / 1.3**2))[..., None].astype(np.float32) * np.array(
-        [0.6, 1.0, 0.8], np.float32)
-    image = to_uint8(img)
-    assert image[int(y) + 8, int(x)].tolist() == [181, 243, 254]
+
+    def on_hot_spot(peak: float, offset_px: float, sigma_px: float) -> np.ndarray:
+        hot = np.exp(-0.5 * ((xx - x - offset_px) ** 2 + (yy - y) ** 2) / sigma_px**2)
+        core = np.exp(-0.5 * ((xx - x) ** 2 + (yy - y) ** 2) / 1.3**2)
+        img = _flat(0.004, np.random.default_rng(3)) + (peak * hot)[..., None].astype(np.float32)
+        img += (3.0 * core)[..., None].astype(np.float32) * np.array([0.6, 1.0, 0.8], np.float32)
+        return to_uint8(img)
 
     def at_spot(res: DetectionResult) -> list[Candidate]:
-        return [c for c in res.candidates
-                if c.source == "bright" and math.dist((c.x, c.y), (x, y)) < 1.0]
+        return [c for c in res.candidates if math.dist((c.x, c.y), (x, y)) < 1.5]
 
-    res = detect_spots(image, CAMERA, rig)
+    crest = on_hot_spot(0.66, 0.0, 50.0)
+    assert crest[int(y) + 8, int(x)].tolist() == [181, 243, 254]
+    unclipped = DetectionOptions(saturation_level=1.0)
+    core = at_spot(detect_spots(crest, CAMERA, rig, unclipped))
+    assert [c.source for c in core] == ["bright"] and 2.0 < core[0].radius_px < 4.5
+    clipped = on_hot_spot(0.8, 30.0, 60.0)
+    assert clipped[int(y) + 8, int(x)].tolist()[1:] == [255, 255]
+    res = detect_spots(clipped, CAMERA, rig)
+    assert res.spots == () and at_spot(res)[0].reason.startswith(TOO_LARGE)
+    monkeypatch.setattr(candidates_module, "LOCAL_CLIPPED_MAX", 1.01)
+    res = detect_spots(clipped, CAMERA, rig)
     assert [s.laser for s in res.spots] == ["L1"]
-    assert math.dist((res.spots[0].x, res.spots[0].y), (x, y)) < 0.5
-    core = at_spot(res)[0]
-    assert core.reason.startswith("assigned to L1") and 2.0 < core.radius_px < 4.5
+    assert math.dist((res.spots[0].x, res.spots[0].y), (x, y)) > 1.0
     monkeypatch.setattr(candidates_module, "LOCAL_RADII", ())
-    res = detect_spots(image, CAMERA, rig)
-    assert "L1" not in {s.laser for s in res.spots}
-    assert at_spot(res) == []  # too large, it lost to the colour response's weak blob there
-    weak = [c for c in res.candidates if math.dist((c.x, c.y), (x, y)) < 1.0]
-    assert [c.source for c in weak] == ["colour"] and weak[0].score < 0.25
+    wide = at_spot(detect_spots(crest, CAMERA, rig, unclipped))
+    assert [c.source for c in wide] == ["colour"] and wide[0].radius_px > 4.0
 
 
 def test_an_elongated_clipped_core_is_read_on_its_outline() -> None:

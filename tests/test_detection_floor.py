@@ -299,9 +299,9 @@ def test_two_whitened_cores_are_taken_where_the_floor_through_them_holds_the_oth
     """Seed 1's `green_all` 5: every spot is a whitened clipped core, and only two lie within
     0.1 band_px of their beams' lines (the third 0.16), too few to be taken alone. The floor
     through a pair of them (within PAIR_BEAM of their lines) puts the other two spots where the
-    floor search finds them: all four are found (all four were missed before). Seed 0's `green_all` 9 has such a pair too, but the
-    floor through it holds one other spot at most: nothing is taken, and its cores' reasons
-    say what the floor held."""
+    floor search finds them: all four are found (all four were missed before). Seed 0's
+    `green_all` 9 has such a pair too, but the floor through it holds one other spot at most:
+    nothing is taken, and its cores' reasons say what the floor held."""
     frame, camera, rig, _ = _physical(1, "green_all", 5, "L1")
     res = detect_spots(frame.image_rgb, camera, rig)
     assert len(res.spots) == 4

@@ -71,6 +71,10 @@ WHITENED_MAX_COLOUR = 0.5
 #: a blob too large against the far background is measured against its own surroundings
 #: where the image's other spots give no radius (:func:`_shape`)
 LOCAL_RADII = (1.0 / 16.0, 1.0 / 8.0)
+#: … unless this share of the pixels out to its ring or more has a clipped channel: on a hot
+#: spot clipped to white a spot has no surroundings to stand above (what stands there is the
+#: few unclipped pixels of the scene's texture)
+LOCAL_CLIPPED_MAX = 0.5
 #: maxima below the clutter gate measured for the second look, per response
 SECOND_LOOK_MAX = 12
 #: local maxima of a response are listed from this many robust σ of its DoG over the crop
@@ -214,7 +218,8 @@ def _shape(m: Measure, plane: F32, bright_plane: F32 | None, planes: Planes,
     (:func:`.shape.local_shape`) and taken when it stands ``min_snr`` above them: at the radius
     the image's other spots give (``region.spot_radius_px``), or else, for a blob too large
     there (a small core on a strobe's hot spot or a lit slope, whose half-maximum region runs
-    into its bright surroundings), at LOCAL_RADII × the largest spot radius, smallest first."""
+    into its bright surroundings), at LOCAL_RADII × the largest spot radius, smallest first,
+    where under LOCAL_CLIPPED_MAX of those surroundings clip."""
     row, col = rc
     blob = shape_and_contrast(plane, row, col, region.max_radius, options.max_annulus_ratio)
     core = planes.clipped_laser[max(0, row - 2):row + 3, max(0, col - 2):col + 3]
@@ -227,7 +232,8 @@ def _shape(m: Measure, plane: F32, bright_plane: F32 | None, planes: Planes,
         return blob
     if region.spot_radius_px is not None:
         radii: tuple[float, ...] = (region.spot_radius_px,)
-    elif blob.rejection is not None and blob.rejection.startswith(TOO_LARGE):
+    elif (blob.rejection is not None and blob.rejection.startswith(TOO_LARGE) and LOCAL_RADII
+          and not _clipped_around(planes, rc, max(LOCAL_RADII) * region.max_radius)):
         radii = tuple(share * region.max_radius for share in LOCAL_RADII)
     else:
         return blob
@@ -236,6 +242,16 @@ def _shape(m: Measure, plane: F32, bright_plane: F32 | None, planes: Planes,
         if local is not None and local.snr >= options.min_snr:
             return local
     return blob
+
+
+def _clipped_around(planes: Planes, rc: tuple[int, int], radius_px: float) -> bool:
+    """Whether LOCAL_CLIPPED_MAX or more of the pixels within 2 ``radius_px`` + 5 px of
+    (row, col) have a clipped channel."""
+    reach = int(math.ceil(2.0 * radius_px + 5.0))
+    row, col = rc
+    around = planes.clipped_any[max(0, row - reach):row + reach + 1,
+                                max(0, col - reach):col + reach + 1]
+    return bool(around.size) and float(around.mean()) >= LOCAL_CLIPPED_MAX
 
 
 def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
