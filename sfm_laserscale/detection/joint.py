@@ -117,8 +117,8 @@ BACKED_BEAM = 0.3
 PAIR_FLOOR_SPOTS = 2
 #: … and each lies within this many ``band_px`` of its beam's image, as four such cores may
 #: (ALL_WHITENED_WIDE_BEAM): the two spots the floor search must find, not the pair's place,
-#: tell two lasers' cores from two glints; at ALL_WHITENED_BEAM, which holds two true cores in
-#: three, a pair of true cores passed in four frames of nine (docs/DETECTION_ROUNDS.md, "The
+#: tell two lasers' cores from two glints; ALL_WHITENED_BEAM holds about two true cores in
+#: three, so about four pairs of true cores in nine (docs/DETECTION_ROUNDS.md, "The
 #: forty-fourth round")
 PAIR_BEAM = ALL_WHITENED_WIDE_BEAM
 #: at most this many pairs of whitened cores are searched for that, best first
