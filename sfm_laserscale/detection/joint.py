@@ -337,20 +337,23 @@ def all_whitened_value(combo: dict[str, Option], min_score: float
     ALL_WHITENED_WIDE_MIN options or more: four glints agree by chance far more rarely than
     three), all within ALL_WHITENED_RANGE_LN of their median range (its floor range), and each
     worth ``min_score`` with its depth term."""
-    opts = list(combo.values())
-    if len(opts) < ALL_WHITENED_MIN:
+    if len(combo) < ALL_WHITENED_MIN:
         return None
-    wide = len(opts) >= ALL_WHITENED_WIDE_MIN
-    ref = _on_lines_at_one_range(opts, ALL_WHITENED_WIDE_BEAM if wide else ALL_WHITENED_BEAM)
-    if ref is None:
-        return None
-    return _valued_at(combo, ref, lambda o: o.rescue, min_score)
+    wide = len(combo) >= ALL_WHITENED_WIDE_MIN
+    return _on_one_floor(combo, ALL_WHITENED_WIDE_BEAM if wide else ALL_WHITENED_BEAM,
+                         lambda o: o.rescue, min_score)
 
 
-def _valued_at(combo: dict[str, Option], ref_m: float, worth: Callable[[Option], float],
-               least: float) -> tuple[float, Choice] | None:
-    """(total value, choice) of options on one floor at range ``ref_m``, each worth
-    ``worth(option)`` with its depth term, or None when one is worth less than ``least``."""
+def _on_one_floor(combo: dict[str, Option], beam_limit: float,
+                  worth: Callable[[Option], float], least: float
+                  ) -> tuple[float, Choice] | None:
+    """(total value, choice) of options each within ``beam_limit`` × ``band_px`` of its beam's
+    image and all within ALL_WHITENED_RANGE_LN of their median range (the floor range), each
+    worth ``worth(option)`` with its depth term; None when they are not so placed or one is
+    worth less than ``least``."""
+    ref_m = _on_lines_at_one_range(list(combo.values()), beam_limit)
+    if ref_m is None:
+        return None
     depth = _depths(combo)
     values = [worth(o) * depth[n] for n, o in combo.items()]
     if min(values) < least:
@@ -363,10 +366,7 @@ def whitened_pair_value(combo: dict[str, Option], min_score: float
     """(total value, choice) of two whitened cores (``rescued``), or None: each within
     PAIR_BEAM × ``band_px`` of its beam's image, both within ALL_WHITENED_RANGE_LN of their
     median range, each worth ``min_score`` with its depth term."""
-    ref = _on_lines_at_one_range(list(combo.values()), PAIR_BEAM)
-    if ref is None:
-        return None
-    return _valued_at(combo, ref, lambda o: o.rescue, min_score)
+    return _on_one_floor(combo, PAIR_BEAM, lambda o: o.rescue, min_score)
 
 
 def whitened_pairs(options: dict[str, list[Option]], min_score: float) -> list[Choice]:
@@ -395,10 +395,7 @@ def plain_pair_value(combo: dict[str, Option]) -> tuple[float, Choice] | None:
     """(total value, choice) of two options that are not whitened cores, or None: each within
     ALL_WHITENED_BEAM × ``band_px`` of its beam's image, both within ALL_WHITENED_RANGE_LN of
     their median range, each worth PLAIN_PAIR_MIN_SCORE with its depth term."""
-    ref = _on_lines_at_one_range(list(combo.values()), ALL_WHITENED_BEAM)
-    if ref is None:
-        return None
-    return _valued_at(combo, ref, lambda o: o.score, PLAIN_PAIR_MIN_SCORE)
+    return _on_one_floor(combo, ALL_WHITENED_BEAM, lambda o: o.score, PLAIN_PAIR_MIN_SCORE)
 
 
 def plain_pairs(options: dict[str, list[Option]]) -> list[Choice]:
