@@ -260,7 +260,10 @@ def test_sigma_grows_with_light_that_is_not_point_symmetric() -> None:
     its centre ~1.5 px and its sigma grows with it (the window's shift, the asymmetry), while
     without those terms it would stay at the floor (the colour term left out: it does not
     depend on the bar, test_a_centre_read_from_colour_holds_the_colour_term). Measured with
-    the narrower windows and the crosstalk centre off; with the narrower windows, a spot whose
+    the narrower windows, the crosstalk centre and the brightness peak off (each core's red
+    clips, so it is found on the brightness response; with the others off, the sub-pixel
+    peak of that response re-centres one of the four: tests/test_detection_wandered.py);
+    with the narrower windows, a spot whose
     narrow window states a σ half as large is re-centred on the spot, with the distance moved
     in its σ (tests/test_detection_narrow_window.py). The spots' red channel clips, and the bar
     lies in red alone: read on green and blue (the crosstalk centre, on by default), every
@@ -281,15 +284,16 @@ def test_sigma_grows_with_light_that_is_not_point_symmetric() -> None:
         e = errors_px(res, truth)
         return [(e[s.laser], s.sigma_px) for s in res.spots]
 
-    clean, pulled = spots(0.0), spots(0.5, narrow_window_ratio=0.0, crosstalk_max_noise_px=0.0)
+    clean = spots(0.0)
+    pulled = spots(0.5, narrow_window_ratio=0.0, crosstalk_max_noise_px=0.0, peak_apart_px=0.0)
     flat = spots(0.5, sigma_window_gain=0.0, sigma_asymmetry_gain=0.0, narrow_window_ratio=0.0,
-                 crosstalk_max_noise_px=0.0)
+                 crosstalk_max_noise_px=0.0, peak_apart_px=0.0)
     assert len(clean) == len(pulled) == 4
     assert all(e < 0.1 and 0.1 <= s < 0.11 for e, s in clean)
     assert all(e > 1.0 and s > 0.2 for e, s in pulled)
     assert all(s == pytest.approx(0.1, abs=1e-3) for _, s in flat)
     # measured: two of the four re-centred, 0.012 and 0.025 px off
-    narrowed = spots(0.5, crosstalk_max_noise_px=0.0)
+    narrowed = spots(0.5, crosstalk_max_noise_px=0.0, peak_apart_px=0.0)
     assert sum(e < 0.1 for e, _ in narrowed) >= 2
     assert all((e < 0.1 and s > 0.4) or (e > 1.0 and s > 0.2) for e, s in narrowed)
     # measured: 0.02-0.30 px off, σ 0.109-0.119 px

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -45,13 +46,15 @@ def test_spots_of_the_floor_search_and_the_second_look_state_their_rules_sigma()
     """``green_all`` 15 of seed 5 (the independent generator, 1920 × 1080): L4 is taken on its
     own evidence, L1 by the floor search, L2 and L3 by the second look. L2 is the right spot
     1.4 px off along x, with a blob σ of 0.51 px: 2.7σ. With its rule's term it is within
-    1.96σ. The centres do not move, and L4's σ is its blob's."""
+    1.96σ. The centres do not move, and L4's σ is its blob's. (Measured with the brightness
+    maximum's sub-pixel peak off: L2's centroid lies 1.6 px from that maximum, and at its
+    peak, on by default, L2 is found 0.41 px off.)"""
     ci = list(CONDITIONS).index("green_all")
     frame = render_frame("green_all", 1920, 1080, np.random.default_rng([5, ci, 0, 15]))
     camera = parse_camera(frame.camera_spec)
     rig = rig_from_dict(tomllib.loads(frame.rig_toml))
-    blob = detect_spots(frame.image_rgb, camera, rig, NO_CHOICE)
-    result = detect_spots(frame.image_rgb, camera, rig, DetectionOptions())
+    blob = detect_spots(frame.image_rgb, camera, rig, replace(NO_CHOICE, peak_apart_px=0.0))
+    result = detect_spots(frame.image_rgb, camera, rig, DetectionOptions(peak_apart_px=0.0))
     rules = {c.laser: c.taken_by for c in result.candidates if c.taken_by}
     assert rules == {"L1": TAKEN_ON_FLOOR, "L2": TAKEN_ON_SECOND_LOOK,
                      "L3": TAKEN_ON_SECOND_LOOK, "L4": TAKEN_ON_OWN}
@@ -70,3 +73,5 @@ def test_spots_of_the_floor_search_and_the_second_look_state_their_rules_sigma()
     assert dx > max(1.3, 1.96 * before_l2.sigma_px)
     assert dx < 1.96 * spots["L2"].sigma_px
     assert spots["L4"].sigma_px == next(s for s in blob.spots if s.laser == "L4").sigma_px
+    at_peak = {s.laser: s for s in detect_spots(frame.image_rgb, camera, rig).spots}["L2"]
+    assert math.dist((at_peak.x, at_peak.y), truth) < 0.5

@@ -104,6 +104,8 @@ class Measure:
     beside: bool = False  # refined with an overlapping spot's modelled light removed
     taken_by: str = ""  # the rule that took it as a spot (options.TAKEN_ON_*), "" if none
     sigma_px: float = 1.0
+    # the response's local maximum it was measured from (crop, then image COLMAP px)
+    peak: tuple[float, float] = (math.nan, math.nan)
     colour: ColourEvidence = field(default_factory=lambda: ColourEvidence(0.5))
     terms: dict[str, float] = field(default_factory=dict)  # evidence without colour and beam
     rejected: str | None = None
@@ -349,7 +351,8 @@ def candidates_for_colour(
                 continue  # the brightness response proposes clipped blobs in the bands only
             value = float(src.blobs[row, col])
             m = Measure(x=col + 0.5, y=row + 0.5, color=color, source=src.name, response=value,
-                        clutter_ratio=value / src.clutter if src.clutter > 0 else math.inf)
+                        clutter_ratio=value / src.clutter if src.clutter > 0 else math.inf,
+                        peak=(col + 0.5, row + 0.5))
             m.rejected = (_unmeasured_reason(m, rc, src, region, n_valid, options)
                           or _covering(out, m, region.roi[:2]))
             if n_second < SECOND_LOOK_MAX and _second_look(m, rc, region, options):
@@ -368,6 +371,7 @@ def candidates_for_colour(
     for m in out:  # crop -> image coordinates
         m.x += x0
         m.y += y0
+        m.peak = (m.peak[0] + x0, m.peak[1] + y0)
     return out
 
 

@@ -286,9 +286,9 @@ def crosstalk_centre(planes: Planes, guess: SpotGuess, sigma_model: SigmaModel,
     return (x, y, sigma) if sigma < chosen[2] else chosen
 
 
-def _local_planes(image_rgb: NDArray[np.uint8], m: Measure,
-                  laser_rgb: tuple[float, float, float], options: DetectionOptions,
-                  max_radius: float) -> tuple[Planes, SpotGuess, int, int]:
+def local_planes(image_rgb: NDArray[np.uint8], m: Measure,
+                 laser_rgb: tuple[float, float, float], options: DetectionOptions,
+                 max_radius: float) -> tuple[Planes, SpotGuess, int, int]:
     """The planes of a crop around a chosen spot (its support and MARGIN_PX), the spot as a
     guess in that crop, and the crop's corner (x0, y0) in image px."""
     rows, cols = window(image_rgb.shape, int(math.floor(m.y)), int(math.floor(m.x)),
@@ -331,7 +331,7 @@ def _centre(image_rgb: NDArray[np.uint8], m: Measure, laser_rgb: tuple[float, fl
     :func:`crosstalk_centre` (``crosstalk``), on one crop around it."""
     if not (both or fit or narrow or crosstalk):
         return
-    planes, guess, x0, y0 = _local_planes(image_rgb, m, laser_rgb, options, max_radius)
+    planes, guess, x0, y0 = local_planes(image_rgb, m, laser_rgb, options, max_radius)
     start = (m.x - x0, m.y - y0, m.sigma_px)
     centre = start
     if both:

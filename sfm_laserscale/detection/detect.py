@@ -7,8 +7,10 @@ search where the plane through the spots found meets a missing laser's beam (:mo
 the other beams searched where a floor through a lone spot puts them (:mod:`.lone`), a lone
 spot's stricter test (:func:`_drop_alone`), in an image where nothing was chosen the
 floor through two whitened cores or two faint candidates (:func:`_pair_on_floor`), the chosen
-spots' centres from both of a green laser's signals (:mod:`.centre`) and the reasons for
-lasers without a spot (:mod:`.explain`). Every candidate is returned with what became of it.
+spots' centres from both of a green laser's signals (:mod:`.centre`), a chosen spot whose
+centre wandered off the maximum it was measured from put back (:mod:`.wandered`: also right
+after the joint choice, for a spot far wider than the others) and the reasons for lasers
+without a spot (:mod:`.explain`). Every candidate is returned with what became of it.
 """
 
 from __future__ import annotations
@@ -60,6 +62,7 @@ from sfm_laserscale.detection.options import (
 from sfm_laserscale.detection.response import crop_channels
 from sfm_laserscale.detection.scene import remove_scene
 from sfm_laserscale.detection.score import below
+from sfm_laserscale.detection.wandered import back_to_peak, narrow_wide_spots
 from sfm_laserscale.memory import trim_heap
 from sfm_laserscale.model import Camera, Spot
 from sfm_laserscale.rig import Rig
@@ -282,6 +285,23 @@ def _drop_alone(rig: Rig, valid: list[Measure], chosen: dict[str, int], unseen: 
                                             "dropped afterwards, alone in its image")
 
 
+def _centred(image_rgb: NDArray[np.uint8], rig: Rig, valid: list[Measure],
+              chosen: dict[str, int], options: DetectionOptions, max_radius: float
+              ) -> dict[str, Measure]:
+    """In place: the chosen spots' reported centres (:func:`.centre.centre_chosen`), then a
+    wide spot whose centre wandered off its maximum measured again at the other spots' radius
+    and centred again, then a brightness maximum's spot that wandered off it at its sub-pixel
+    peak (:mod:`.wandered`). Returns laser -> its spot."""
+    taken = {name: valid[j] for name, j in chosen.items()}
+    for spot in taken.values():
+        centre_chosen(image_rgb, spot, group_rgb(rig, spot.color), options, max_radius)
+    for name in narrow_wide_spots(image_rgb, rig, valid, chosen, options, max_radius):
+        centre_chosen(image_rgb, taken[name], group_rgb(rig, taken[name].color), options,
+                      max_radius)
+    back_to_peak(image_rgb, valid, chosen, options)
+    return taken
+
+
 def detect_spots(
     image_rgb: NDArray[np.uint8], camera: Camera, rig: Rig,
     options: DetectionOptions = DetectionOptions(),  # noqa: B008 (frozen dataclass)
@@ -299,6 +319,7 @@ def detect_spots(
     trim_heap()  # the detection planes (~16 bytes per pixel) go back to the OS
     valid = [m for m in measures if m.rejected is None]
     chosen, missing, dist, pairs = assign_calibrated(rig, region, valid, options)
+    narrow_wide_spots(image_rgb, rig, valid, chosen, options, region.max_radius)
     on_floor, floor_why = _floor_then_second_look(image_rgb, camera, rig, region, measures,
                                                   valid, chosen, options)
     lone, why_lone = _lone_floor(image_rgb, camera, rig, region, valid, chosen, options)
@@ -316,9 +337,7 @@ def detect_spots(
     for name, why in floor_why.items():
         if name not in chosen:
             missing[name] = f"{missing.get(name, 'no spot')}; {PLACE}: {why}"
-    taken = {name: valid[j] for name, j in chosen.items()}
-    for spot in taken.values():
-        centre_chosen(image_rgb, spot, group_rgb(rig, spot.color), options, region.max_radius)
+    taken = _centred(image_rgb, rig, valid, chosen, options, region.max_radius)
     floor_radius = floor_radius_px(camera, options)
     spots = tuple(
         Spot(laser=name, x=m.x, y=m.y, score=float(np.clip(m.score, 0, 1)),

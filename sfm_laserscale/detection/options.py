@@ -167,7 +167,11 @@ class DetectionOptions:
       half-maximum radius is this many times the image's other spots' median radius or more,
       and whose own centroid window centres it beyond max(2 px, that radius) from itself, is
       refined at that radius, and takes that centre where it holds
-      (:func:`.candidates._refined`); 0 switches it off.
+      (:func:`.candidates._refined`); so is a chosen spot that wide, against the other chosen
+      spots (:func:`.wandered.narrow_wide_spots`); 0 switches both off.
+    - ``peak_apart_px``: a chosen spot measured from a maximum of the brightness response
+      whose centre lies beyond max(this, half its half-maximum radius) of that maximum takes
+      the maximum's sub-pixel peak (:func:`.wandered.back_to_peak`); 0 switches it off.
     - ``luma_separation_radii``: a luma-dominant (green) laser's spots are refined with a
       neighbour's light removed (read on the texture-free light alone) only when their centres
       lie within this many half-maximum radii (theirs summed); None: when their refinement
@@ -219,6 +223,7 @@ class DetectionOptions:
     fit_agree_sigmas: float = 3.0
     narrow_window_ratio: float = 2.0
     wide_maximum_ratio: float = 2.0
+    peak_apart_px: float = 1.2
     crosstalk_max_noise_px: float = 0.05
     lone_floor_spots: int = 2
     lone_floor_reach_px: float | None = None
@@ -252,7 +257,8 @@ class DetectionOptions:
                      "sigma_floor_px", "sigma_window_gain", "sigma_asymmetry_gain",
                      "sigma_disagreement_gain", "sigma_chroma_px", "sigma_floor_choice",
                      "sigma_second_look_choice", "fit_agree_sigmas",
-                     "narrow_window_ratio", "wide_maximum_ratio", "crosstalk_max_noise_px"):
+                     "narrow_window_ratio", "wide_maximum_ratio", "crosstalk_max_noise_px",
+                     "peak_apart_px"):
             if not getattr(self, name) >= 0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)}")
         for name in ("snr_half", "clutter_half", "colour_tau", "scene_texture_sigma_px"):
