@@ -141,12 +141,12 @@ def _benchmark_frame(condition: str, seed: int, index: int) -> tuple[Frame, np.n
     return frame, fit_reference(frame.image_rgb, reference).rgb
 
 
-def test_a_spot_on_a_pale_patch_in_green_water_is_found() -> None:
-    """Seed 38's `green_water` 4 with its fitted scene reference (the benchmark's): L1's spot
-    (2.0 × white) sits on a pale patch, and its half-maximum region ran into it (10.4 px
-    against the others' 1.8-2.8 px): refined with that window it was taken 5.2 px off. From
-    its maximum at the others' radius it is found 0.35 px off; every other spot is as before."""
-    frame, scene = _benchmark_frame("green_water", 38, 4)
+def _with_and_without(draw: tuple[str, int, int], step: str
+                      ) -> tuple[dict[str, float], dict[str, float]]:
+    """Each laser's error (px) on a benchmark frame (condition, seed, index) with its fitted
+    scene reference, with every step, then with the :mod:`.detect` step ``step`` doing
+    nothing."""
+    frame, scene = _benchmark_frame(*draw)
     camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
 
     def errors() -> dict[str, float]:
@@ -155,10 +155,18 @@ def test_a_spot_on_a_pale_patch_in_green_water_is_found() -> None:
                 for s in res.spots}
 
     got = errors()
-    assert sorted(got) == ["L1", "L2", "L3", "L4"] and max(got.values()) < 0.5, got
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(detect_module, "narrow_wide_spots", lambda *a, **k: [])
-        without = errors()
+        mp.setattr(detect_module, step, lambda *a, **k: [])
+        return got, errors()
+
+
+def test_a_spot_on_a_pale_patch_in_green_water_is_found() -> None:
+    """Seed 38's `green_water` 4 with its fitted scene reference (the benchmark's): L1's spot
+    (2.0 × white) sits on a pale patch, and its half-maximum region ran into it (10.4 px
+    against the others' 1.8-2.8 px): refined with that window it was taken 5.2 px off. From
+    its maximum at the others' radius it is found 0.35 px off; every other spot is as before."""
+    got, without = _with_and_without(("green_water", 38, 4), "narrow_wide_spots")
+    assert sorted(got) == ["L1", "L2", "L3", "L4"] and max(got.values()) < 0.5, got
     assert without["L1"] > 4.0
     assert all(abs(without[n] - got[n]) < 1e-9 for n in ("L2", "L3", "L4"))
 
@@ -240,18 +248,7 @@ def test_a_spot_pulled_by_a_snow_particle_is_found_at_its_peak() -> None:
     """Seed 33's `marine_snow` 6 with its fitted scene reference (the benchmark's): L2's
     clipped core was refined beside an overlapping blob and centred 2.9 px from its maximum,
     2.75 px off its truth. At its brightness maximum's sub-pixel peak it is found."""
-    frame, scene = _benchmark_frame("marine_snow", 33, 6)
-    camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
-
-    def errors() -> dict[str, float]:
-        res = detect_spots(frame.image_rgb, camera, rig, DetectionOptions(), scene_rgb=scene)
-        return {s.laser: math.dist((s.x, s.y), frame.truth[s.laser] or (0.0, 0.0))
-                for s in res.spots}
-
-    got = errors()
+    got, without = _with_and_without(("marine_snow", 33, 6), "back_to_peak")
     assert sorted(got) == ["L1", "L2", "L3", "L4"] and max(got.values()) < 0.5, got
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(detect_module, "back_to_peak", lambda *a, **k: [])
-        without = errors()
     assert without["L2"] > 2.0
     assert all(abs(without[n] - got[n]) < 1e-9 for n in ("L1", "L3", "L4"))
