@@ -149,11 +149,18 @@ def _threshold(blobs: F32, maxima_sigmas: float) -> float:
     return max(maxima_sigmas * robust_std(blobs[::4, ::4]), 4.0 / 255.0)
 
 
-def _source(name: str, plane: F32, options: DetectionOptions, scene: NDArray[np.bool_] | None,
-            where: NDArray[np.bool_] | None, maxima_sigmas: float) -> _Source:
+def source_blobs(name: str, plane: F32, options: DetectionOptions) -> F32:
+    """The blob response whose maxima are the candidates of the ``name`` ("colour" or
+    "bright") response ``plane``: its DoG, or the brightness's ridge-free response when
+    ``options.ridge_free_brightness``."""
     ridge_free = name == "bright" and options.ridge_free_brightness
     response = ridge_free_response if ridge_free else blob_response
-    blobs = response(plane, options.spot_sigmas_px)
+    return response(plane, options.spot_sigmas_px)
+
+
+def _source(name: str, plane: F32, options: DetectionOptions, scene: NDArray[np.bool_] | None,
+            where: NDArray[np.bool_] | None, maxima_sigmas: float) -> _Source:
+    blobs = source_blobs(name, plane, options)
     return _Source(name, plane, blobs, _threshold(blobs, maxima_sigmas),
                    clutter_level(blobs, where=scene), where)
 
@@ -301,10 +308,7 @@ def _refined(planes: Planes, m: Measure, options: DetectionOptions,
     (:func:`_wandered`), where the narrower refinement holds.
     """
     def attempt(radius: float, support: float) -> tuple[float, float, float] | None:
-        guess = SpotGuess(m.x, m.y, radius, support, m.bright)
-        x, y, sig = refine_spot(planes, guess, options.refine, sigma_model=options.sigma_model)
-        ok = math.isfinite(sig) and math.hypot(x - m.x, y - m.y) <= max(2.0, radius)
-        return (x, y, sig) if ok else None
+        return refine_within(planes, SpotGuess(m.x, m.y, radius, support, m.bright), options)
 
     refined = attempt(m.radius_px, m.support_px)
     if spot_radius_px is None or spot_radius_px >= m.radius_px:
@@ -317,6 +321,15 @@ def _refined(planes: Planes, m: Measure, options: DetectionOptions,
         return refined
     m.radius_px, m.support_px = spot_radius_px, support
     return again
+
+
+def refine_within(planes: Planes, guess: SpotGuess, options: DetectionOptions
+                  ) -> tuple[float, float, float] | None:
+    """(x, y, σ) (crop COLMAP px) of ``guess`` refined (:func:`.refine.refine_spot`), or None
+    when that gives no finite result or a centre beyond max(2, its radius) px of it."""
+    x, y, sig = refine_spot(planes, guess, options.refine, sigma_model=options.sigma_model)
+    ok = math.isfinite(sig) and math.hypot(x - guess.x, y - guess.y) <= max(2.0, guess.radius_px)
+    return (x, y, sig) if ok else None
 
 
 def _wandered(m: Measure, centre: tuple[float, float, float], spot_radius_px: float,

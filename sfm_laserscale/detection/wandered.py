@@ -47,17 +47,11 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from sfm_laserscale.detection.candidates import Measure
+from sfm_laserscale.detection.candidates import Measure, refine_within, source_blobs
 from sfm_laserscale.detection.centre import local_planes
 from sfm_laserscale.detection.inputs import group_rgb
 from sfm_laserscale.detection.options import TAKEN_ON_FLOOR, DetectionOptions
-from sfm_laserscale.detection.refine import refine_spot
-from sfm_laserscale.detection.response import (
-    blob_response,
-    brightness,
-    crop_channels,
-    ridge_free_response,
-)
+from sfm_laserscale.detection.response import brightness, crop_channels
 from sfm_laserscale.detection.shape import expected_support_px
 from sfm_laserscale.rig import Rig
 
@@ -131,11 +125,8 @@ def narrow_centre(image_rgb: NDArray[np.uint8], probe: Measure,
     """(x, y, σ) (image COLMAP px) of ``probe`` refined at its own position and radius, or
     None when the refinement gives no finite centre within max(2, radius) px of it."""
     planes, guess, x0, y0 = local_planes(image_rgb, probe, laser_rgb, options, max_radius)
-    x, y, sigma = refine_spot(planes, guess, options.refine, sigma_model=options.sigma_model)
-    reach = max(2.0, guess.radius_px)
-    if not (math.isfinite(sigma) and math.hypot(x - guess.x, y - guess.y) <= reach):
-        return None
-    return x + x0, y + y0, sigma
+    centre = refine_within(planes, guess, options)
+    return None if centre is None else (centre[0] + x0, centre[1] + y0, centre[2])
 
 
 def back_to_peak(image_rgb: NDArray[np.uint8], valid: list[Measure],
@@ -177,8 +168,7 @@ def _brightness_blobs(image_rgb: NDArray[np.uint8], peak: tuple[float, float],
     roi = (max(0, col - reach), max(0, row - reach), min(width, col + reach + 1),
            min(height, row + reach + 1))
     plane = brightness(crop_channels(image_rgb, roi, options.input_gamma))
-    response = ridge_free_response if options.ridge_free_brightness else blob_response
-    return response(plane, options.spot_sigmas_px), (roi[0], roi[1])
+    return source_blobs("bright", plane, options), (roi[0], roi[1])
 
 
 def subpixel_peak(response: F32, corner: tuple[int, int], peak: tuple[float, float]
