@@ -10,10 +10,10 @@ max(2 px, that radius) of its maximum, too few other spots, no light at the maxi
 frame of the physical benchmark where the rule turned a spot measured 5.2 px off into one
 found.
 
-A brightness maximum's spot, at its sub-pixel peak: the parabola's vertex (exact on a
-parabola), the peak of a clean spot's response, a spot whose centre was pulled 2 px off, the
-guards (a colour maximum, a centre near its maximum, a spot the floor search took, an
-elongated one, the option off), and a frame of the physical benchmark.
+A brightness maximum's spot, at its sub-pixel peak: the peak of a clean spot's response, a
+spot whose centre was pulled 2 px off, the guards (a colour maximum, a centre near its
+maximum, a spot the floor search took, an elongated one, the option off), and a frame of the
+physical benchmark.
 """
 
 from __future__ import annotations
@@ -24,29 +24,24 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from script_loader import load_script
+from benchmark_frames import fitted_frame
 
 import sfm_laserscale.detection.detect as detect_module
 from sfm_laserscale.commands.detect import parse_camera
 from sfm_laserscale.detection import DetectionOptions, detect_spots
-from sfm_laserscale.detection.candidates import Measure
+from sfm_laserscale.detection.candidates import PEAK_MIN_ROUNDNESS, Measure
 from sfm_laserscale.detection.options import TAKEN_ON_FLOOR, SigmaModel
-from sfm_laserscale.detection.refine import SpotGuess, refine_spot
+from sfm_laserscale.detection.refine import SpotGuess, refine_spot, subpixel_peak
 from sfm_laserscale.detection.response import crop_channels, make_planes
 from sfm_laserscale.detection.wandered import (
     NARROW_OTHER_SPOTS,
-    PEAK_MIN_ROUNDNESS,
     _brightness_blobs,
-    _vertex,
     back_to_peak,
     narrow_wide_spots,
     others_radius,
-    subpixel_peak,
 )
 from sfm_laserscale.laser_color import DEFAULT_RGB
 from sfm_laserscale.rig import Rig, rig_from_dict
-from sfm_laserscale.scene_fit import fit_reference
-from sfm_laserscale.synthetic.underwater import CONDITIONS, Frame, render_frame
 
 SIZE = 81
 TRUE_XY = (40.3, 39.8)  # COLMAP px
@@ -128,25 +123,12 @@ def test_a_spot_keeps_its_measure(case: str) -> None:
     assert (valid[0].x, valid[0].y, valid[0].radius_px, valid[0].sigma_px) == before
 
 
-def _benchmark_frame(condition: str, seed: int, index: int) -> tuple[Frame, np.ndarray]:
-    """A frame of the physical benchmark at 1920 × 1080 and its scene reference as the
-    benchmark fits it (shifted 0.5 px, blurred 0.7 px, relit ±10 %, then fitted)."""
-    bench = load_script("bench_detection_physical")
-    ci = list(CONDITIONS).index(condition)
-    frame = render_frame(condition, 1920, 1080, np.random.default_rng([seed, ci, 0, index]),
-                         scene_reference=True)
-    assert frame.image_scene_rgb is not None
-    reference = bench.as_rendered(frame.image_scene_rgb, bench.SceneReference(0.5, 0.7, 0.1),
-                                  np.random.default_rng([seed, ci, 0, index, 7]))
-    return frame, fit_reference(frame.image_rgb, reference).rgb
-
-
 def _with_and_without(draw: tuple[str, int, int], step: str
                       ) -> tuple[dict[str, float], dict[str, float]]:
     """Each laser's error (px) on a benchmark frame (condition, seed, index) with its fitted
     scene reference, with every step, then with the :mod:`.detect` step ``step`` doing
     nothing."""
-    frame, scene = _benchmark_frame(*draw)
+    frame, scene = fitted_frame(*draw)
     camera, rig = parse_camera(frame.camera_spec), rig_from_dict(tomllib.loads(frame.rig_toml))
 
     def errors() -> dict[str, float]:
@@ -169,14 +151,6 @@ def test_a_spot_on_a_pale_patch_in_green_water_is_found() -> None:
     assert sorted(got) == ["L1", "L2", "L3", "L4"] and max(got.values()) < 0.5, got
     assert without["L1"] > 4.0
     assert all(abs(without[n] - got[n]) < 1e-9 for n in ("L2", "L3", "L4"))
-
-
-def test_the_vertex_of_a_parabola_is_exact() -> None:
-    xs = np.array([-1.0, 0.0, 1.0])
-    for vertex in (-0.45, 0.0, 0.3):
-        assert _vertex((1.0 - (xs - vertex) ** 2).astype(np.float32)) == pytest.approx(vertex)
-    assert _vertex(np.array([1.0, 0.5, 2.0], np.float32)) is None  # not a maximum
-    assert _vertex(np.array([1.0, 1.0, 1.0], np.float32)) is None  # flat
 
 
 def _green_image(patch_peak: float) -> np.ndarray:

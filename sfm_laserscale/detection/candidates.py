@@ -12,9 +12,10 @@ measured, except maxima in a band within reach of the gate (``second_look_clutte
 which are measured for the second look of :mod:`.assign` but stay out of the first choice.
 The others are measured (:mod:`.shape`), refined (:mod:`.refine`) and get their evidence
 (:mod:`.score`); hard tests (no contrast, too large, not compact, weak, refinement failed)
-reject a candidate with a reason, everything else is evidence in its score.
-Overlapping spots are refined again with each other's light removed (for a luma-dominant
-laser, only spots whose cores are near: :func:`overlap_reach`).
+reject a candidate with a reason, everything else is evidence in its score; a round maximum
+of the brightness response whose refinement fails is centred at its sub-pixel peak instead
+(:func:`_at_peak`). Overlapping spots are refined again with each other's light removed (for
+a luma-dominant laser, only spots whose cores are near: :func:`overlap_reach`).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from sfm_laserscale.detection.refine import (
     neighbour_model,
     refine_spot,
     spot_patch,
+    subpixel_peak,
 )
 from sfm_laserscale.detection.response import (
     CHANNELS,
@@ -67,6 +69,10 @@ F32 = NDArray[np.float32]
 #: 4:2:0 chroma and the sensor's spectral crosstalk whiten a bright core and its rim, whatever
 #: its size
 WHITENED_MAX_COLOUR = 0.5
+#: a brightness maximum is centred at its sub-pixel peak (a failed refinement, a centre that
+#: wandered off it: :mod:`.wandered`) only when its roundness (minor over major axis) is at
+#: least this: a streak of motion blur is flat along itself, its response peaks anywhere on it
+PEAK_MIN_ROUNDNESS = 0.5
 #: half-max radii, as shares of the largest spot radius (2 and 4 px at 1920 × 1080), at which
 #: a blob too large against the far background is measured against its own surroundings
 #: where the image's other spots give no radius (:func:`_shape`)
@@ -102,6 +108,7 @@ class Measure:
     whitened: bool = False  # a small clipped core whose colour read against it
     second_look: bool = False  # below the clutter gate, measured for the second look
     beside: bool = False  # refined with an overlapping spot's modelled light removed
+    at_peak: bool = False  # its refinement failed: centred at its sub-pixel peak (_at_peak)
     taken_by: str = ""  # the rule that took it as a spot (options.TAKEN_ON_*), "" if none
     sigma_px: float = 1.0
     # the response's local maximum it was measured from (crop, then image COLMAP px)
@@ -263,10 +270,10 @@ def _clipped_around(planes: Planes, rc: tuple[int, int], radius_px: float) -> bo
     return bool(around.size) and float(around.mean()) >= LOCAL_CLIPPED_MAX
 
 
-def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
+def _measure(planes: Planes, m: Measure, src: _Source, bright_plane: F32 | None,
              rc: tuple[int, int], options: DetectionOptions, region: SearchRegion) -> None:
     """In place: shape, refinement, added light and evidence terms of one maximum."""
-    blob = _shape(m, plane, bright_plane, planes, rc, options, region)
+    blob = _shape(m, src.plane, bright_plane, planes, rc, options, region)
     m.radius_px, m.roundness, m.snr, m.support_px = (blob.radius, blob.roundness, blob.snr,
                                                      blob.support)
     m.rejected = blob.rejection
@@ -274,7 +281,8 @@ def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
         m.rejected = f"{WEAK_SNR} {m.snr:.1f} < {options.min_snr:g})"
     if m.rejected is not None:
         return
-    refined = _refined(planes, m, options, region.spot_radius_px)
+    refined = (_refined(planes, m, options, region.spot_radius_px)
+               or _at_peak(m, src, options, region.max_radius))
     if refined is None:
         m.rejected = "sub-pixel refinement failed"
         return
@@ -291,6 +299,33 @@ def _measure(planes: Planes, m: Measure, plane: F32, bright_plane: F32 | None,
     m.terms = {"contrast": contrast_term(m.snr, options.snr_half),
                "roundness": math.sqrt(max(m.roundness, 0.0)),
                "clutter": clutter_term(m.clutter_ratio, options.clutter_half)}
+
+
+def _at_peak(m: Measure, src: _Source, options: DetectionOptions, max_radius: float
+             ) -> tuple[float, float, float] | None:
+    """(x, y, σ) (crop COLMAP px) of a round maximum of the brightness response at its
+    sub-pixel peak (:func:`.refine.subpixel_peak`), for one whose refinement failed; None for
+    other maxima, or where the peak has no vertex. Marks it ``at_peak``.
+
+    A compact core beside a particle, a hot spot's rim or a turbid glow: its centroid window
+    centres them and runs beyond max(2 px, its radius), but the band-pass response at the
+    spot's own scales still peaks on the spot. Its σ per axis is disagreement_gain × its
+    half-maximum radius with the floor: no centroid agrees with the peak, and a neighbour's
+    flank within that radius moves it (:class:`~.options.SigmaModel`). The radius counts at
+    least 1 px and at most the largest of LOCAL_RADII × ``max_radius`` (the largest spot
+    radius, px): a half-maximum region that ran into a hot spot is the hot spot's size. A
+    streak's response peaks anywhere along it (roundness below PEAK_MIN_ROUNDNESS), a colour
+    response on a clipped core's halo: those stay rejected."""
+    if (not options.peak_when_refinement_fails or src.name != "bright"
+            or m.roundness < PEAK_MIN_ROUNDNESS):
+        return None
+    peak = subpixel_peak(src.blobs, (0, 0), m.peak)
+    if peak is None:
+        return None
+    m.at_peak = True
+    sigma = options.sigma_model
+    radius = min(max(1.0, m.radius_px), max(1.0, max(LOCAL_RADII) * max_radius))
+    return peak[0], peak[1], math.hypot(sigma.floor_px, sigma.disagreement_gain * radius)
 
 
 def _refined(planes: Planes, m: Measure, options: DetectionOptions,
@@ -372,14 +407,15 @@ def candidates_for_colour(
                 n_second += 1
                 _measure_second_look(out, m, rc, planes, src, bright_plane, options, region)
             elif m.rejected is None:
-                _measure(planes, m, src.plane, bright_plane, rc, options, region)
+                _measure(planes, m, src, bright_plane, rc, options, region)
                 m.rejected = m.rejected or _covering(out, m, region.roi[:2])
                 n_valid += m.rejected is None
             if src.name == "bright" and m.rejected is not None and m.rejected.startswith("dup"):
                 _better_of_the_two(out, m, rc, planes, src, bright_plane, options, region)
                 continue  # a colour candidate stands there (replaced if this one is better)
             out.append(m)
-    separate_overlapping(planes, [m for m in out if m.rejected is None], options)
+    separate_overlapping(planes, [m for m in out if m.rejected is None and not m.at_peak],
+                         options)
     x0, y0 = region.roi[:2]
     for m in out:  # crop -> image coordinates
         m.x += x0
@@ -405,7 +441,7 @@ def _measure_second_look(out: list[Measure], m: Measure, rc: tuple[int, int], pl
     (``rejected`` keeps the gate's reason, and the test it then failed) and is marked
     ``second_look`` when it measured."""
     m.rejected = None
-    _measure(planes, m, src.plane, bright_plane, rc, options, region)
+    _measure(planes, m, src, bright_plane, rc, options, region)
     failed = m.rejected or _covering(out, m, region.roi[:2])
     m.second_look = failed is None
     then = f"and {failed}" if failed else "taken only at the range of the other lasers' spots"
@@ -430,7 +466,7 @@ def _better_of_the_two(out: list[Measure], m: Measure, rc: tuple[int, int], plan
         return
     o = near[0]
     m.rejected = None
-    _measure(planes, m, src.plane, bright_plane, rc, options, region)
+    _measure(planes, m, src, bright_plane, rc, options, region)
     if m.rejected is None and m.base_score * m.colour.term > o.base_score * o.colour.term:
         out[out.index(o)] = m
 

@@ -158,6 +158,9 @@ def _whitened_on_floor(camera: Camera, rig: Rig, region: SearchRegion, measures:
     return whitened_at_floor(rig, region, measures, valid, chosen, predicted, reach, options)
 
 
+#: what the reason of a spot centred at its peak adds (:func:`.candidates._at_peak`)
+AT_PEAK_FAILED = ("; centred at its brightness maximum's sub-pixel peak: a centroid ran off it "
+                  "(σ widened)")
 #: what a pair's candidate's reason adds when the floor through the two held too few spots
 #: (``what``: "such core" for whitened cores, "candidate" for others)
 PAIR_HELD = ("; with {other}'s {what} at one range, the floor through the two holds {found} "
@@ -288,12 +291,16 @@ def _drop_alone(rig: Rig, valid: list[Measure], chosen: dict[str, int], unseen: 
 def _centred(image_rgb: NDArray[np.uint8], rig: Rig, valid: list[Measure],
               chosen: dict[str, int], options: DetectionOptions, max_radius: float
               ) -> dict[str, Measure]:
-    """In place: the chosen spots' reported centres (:func:`.centre.centre_chosen`), then a
+    """In place: the chosen spots' reported centres (:func:`.centre.centre_chosen`; a spot
+    centred at its peak because its refinement failed keeps it, and says so), then a
     wide spot whose centre wandered off its maximum measured again at the other spots' radius
     and centred again, then a brightness maximum's spot that wandered off it at its sub-pixel
     peak (:mod:`.wandered`). Returns laser -> its spot."""
     taken = {name: valid[j] for name, j in chosen.items()}
     for spot in taken.values():
+        if spot.at_peak:
+            spot.reason += AT_PEAK_FAILED
+            continue
         centre_chosen(image_rgb, spot, group_rgb(rig, spot.color), options, max_radius)
     for name in narrow_wide_spots(image_rgb, rig, valid, chosen, options, max_radius):
         centre_chosen(image_rgb, taken[name], group_rgb(rig, taken[name].color), options,

@@ -172,6 +172,9 @@ class DetectionOptions:
     - ``peak_apart_px``: a chosen spot measured from a maximum of the brightness response
       whose centre lies beyond max(this, half its half-maximum radius) of that maximum takes
       the maximum's sub-pixel peak (:func:`.wandered.back_to_peak`); 0 switches it off.
+    - ``peak_when_refinement_fails``: a round maximum of the brightness response whose
+      sub-pixel refinement fails (its centroid runs off it) is centred at its sub-pixel peak,
+      with a wider σ, rather than rejected (:func:`.candidates._at_peak`).
     - ``luma_separation_radii``: a luma-dominant (green) laser's spots are refined with a
       neighbour's light removed (read on the texture-free light alone) only when their centres
       lie within this many half-maximum radii (theirs summed); None: when their refinement
@@ -224,6 +227,7 @@ class DetectionOptions:
     narrow_window_ratio: float = 2.0
     wide_maximum_ratio: float = 2.0
     peak_apart_px: float = 1.2
+    peak_when_refinement_fails: bool = True
     crosstalk_max_noise_px: float = 0.05
     lone_floor_spots: int = 2
     lone_floor_reach_px: float | None = None

@@ -21,7 +21,8 @@ texture-free signal, only lost accuracy with it). The centre is a Gaussian-windo
 iterated to its fixed point (unbiased for any point-symmetric spot, saturated or not) or,
 optionally and for spots cut by the image border, a 2D Gaussian fit to the unclipped pixels.
 Overlapping spots are refined with each other's modelled light removed
-(:class:`NeighbourModel`).
+(:class:`NeighbourModel`). Where a centroid runs off its spot, the peak of a blob response is
+read instead (:func:`subpixel_peak`: a parabola along each axis through the maximum).
 
 The localisation sigma is the ring noise through the centroid plus what noise does not show
 (:class:`~sfm_laserscale.detection.options.SigmaModel`): light that is not point-symmetric
@@ -559,3 +560,34 @@ def asymmetry(patch: SpotPatch, x: float, y: float, radius_px: float) -> float:
     direct = patch.signal[inside]
     den = float(np.sum(direct**2 + mirrored**2))
     return float(np.sum((direct - mirrored) ** 2) / den) if den > 0 else 0.0
+
+
+def subpixel_peak(response: NDArray[np.float32], corner: tuple[int, int],
+                  peak: tuple[float, float]) -> tuple[float, float] | None:
+    """The sub-pixel position (image COLMAP px) of the largest value of ``response`` (a crop
+    whose corner is ``corner``, (x0, y0) image px) within 1 px of the pixel ``peak`` (image
+    COLMAP px): a parabola through it and its two neighbours along each axis. None where that
+    value is not a maximum along both axes or lies on the crop's edge."""
+    x0, y0 = corner
+    row, col = int(math.floor(peak[1])) - y0, int(math.floor(peak[0])) - x0
+    rows, cols = response.shape
+    if not (2 <= row < rows - 2 and 2 <= col < cols - 2):
+        return None
+    around = response[row - 1:row + 2, col - 1:col + 2]
+    dr, dc = np.unravel_index(int(np.argmax(around)), around.shape)
+    row, col = row + int(dr) - 1, col + int(dc) - 1
+    x = parabola_vertex(response[row, col - 1:col + 2])
+    y = parabola_vertex(response[row - 1:row + 2, col])
+    if x is None or y is None:
+        return None
+    return x0 + col + 0.5 + x, y0 + row + 0.5 + y
+
+
+def parabola_vertex(three: NDArray[np.float32]) -> float | None:
+    """Offset (px, within ±0.5) of the vertex of the parabola through three equally spaced
+    values whose middle one is the largest; None otherwise."""
+    left, mid, right = (float(v) for v in three)
+    curvature = left - 2.0 * mid + right
+    if not (mid >= left and mid >= right and curvature < 0):
+        return None
+    return 0.5 * (left - right) / curvature

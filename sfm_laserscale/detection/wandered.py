@@ -22,7 +22,7 @@ pixels off the maximum that was the spot. Two steps put such a spot back:
   the brightness response (a clipped core, a green laser's spot) whose reported centre lies
   beyond max(``options.peak_apart_px``, PEAK_APART_RADII half-maximum radii) of its maximum
   takes that maximum's sub-pixel position: the response's peak, interpolated by a parabola
-  through it and its neighbours along each axis (:func:`subpixel_peak`). The brightness
+  through it and its neighbours along each axis (:func:`.refine.subpixel_peak`). The brightness
   response is a band-pass curvature at the spot's own scales, which the surroundings' slope
   and a neighbour's flank move far less than a centroid. Its σ gains (disagreement_gain ·
   d)², d the distance between the two (:class:`~.options.SigmaModel`). Spots of the colour
@@ -47,10 +47,16 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from sfm_laserscale.detection.candidates import Measure, refine_within, source_blobs
+from sfm_laserscale.detection.candidates import (
+    PEAK_MIN_ROUNDNESS,
+    Measure,
+    refine_within,
+    source_blobs,
+)
 from sfm_laserscale.detection.centre import local_planes
 from sfm_laserscale.detection.inputs import group_rgb
 from sfm_laserscale.detection.options import TAKEN_ON_FLOOR, DetectionOptions
+from sfm_laserscale.detection.refine import subpixel_peak
 from sfm_laserscale.detection.response import brightness, crop_channels
 from sfm_laserscale.detection.shape import expected_support_px
 from sfm_laserscale.rig import Rig
@@ -63,8 +69,6 @@ NARROW_OTHER_SPOTS = 2
 #: a brightness maximum's spot centred farther than ``options.peak_apart_px`` from it, and
 #: than this share of its half-maximum radius, takes its sub-pixel peak
 PEAK_APART_RADII = 0.5
-#: … and is round: at least this roundness (minor over major axis of its blob)
-PEAK_MIN_ROUNDNESS = 0.5
 #: what the reason of a spot measured again adds
 NARROWED = ("; measured again at its maximum ({x:.1f}, {y:.1f}) at the other spots' radius "
             "{radius:.1f} px (its own, {wide:.1f} px, ran into its surroundings)")
@@ -169,34 +173,3 @@ def _brightness_blobs(image_rgb: NDArray[np.uint8], peak: tuple[float, float],
            min(height, row + reach + 1))
     plane = brightness(crop_channels(image_rgb, roi, options.input_gamma))
     return source_blobs("bright", plane, options), (roi[0], roi[1])
-
-
-def subpixel_peak(response: F32, corner: tuple[int, int], peak: tuple[float, float]
-                  ) -> tuple[float, float] | None:
-    """The sub-pixel position (image COLMAP px) of the largest value of ``response`` (a crop
-    whose corner is ``corner``, (x0, y0) image px) within 1 px of the pixel ``peak`` (image
-    COLMAP px): a parabola through it and its two neighbours along each axis. None where that
-    value is not a maximum along both axes or lies on the crop's edge."""
-    x0, y0 = corner
-    row, col = int(math.floor(peak[1])) - y0, int(math.floor(peak[0])) - x0
-    rows, cols = response.shape
-    if not (2 <= row < rows - 2 and 2 <= col < cols - 2):
-        return None
-    around = response[row - 1:row + 2, col - 1:col + 2]
-    dr, dc = np.unravel_index(int(np.argmax(around)), around.shape)
-    row, col = row + int(dr) - 1, col + int(dc) - 1
-    x = _vertex(response[row, col - 1:col + 2])
-    y = _vertex(response[row - 1:row + 2, col])
-    if x is None or y is None:
-        return None
-    return x0 + col + 0.5 + x, y0 + row + 0.5 + y
-
-
-def _vertex(three: F32) -> float | None:
-    """Offset (px, within ±0.5) of the vertex of the parabola through three equally spaced
-    values whose middle one is the largest; None otherwise."""
-    left, mid, right = (float(v) for v in three)
-    curvature = left - 2.0 * mid + right
-    if not (mid >= left and mid >= right and curvature < 0):
-        return None
-    return 0.5 * (left - right) / curvature
