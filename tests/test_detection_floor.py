@@ -176,8 +176,9 @@ def _physical(seed: int, condition: str, index: int, name: str
 def _searched_with_the_other_spots_radius(seed: int, condition: str, index: int, name: str,
                                           failed: str) -> tuple[DetectionResult, Measure, float]:
     """A physical frame's ``name`` spot: found by ``detect_spots`` within 1.5 px; searched near
-    its truth without the other spots' radius, the maximum there fails with ``failed``; with
-    it, the candidate taken (returned with its evidence and that radius)."""
+    its truth without the other spots' radius (and without centring a maximum whose refinement
+    failed at its peak), the maximum there fails with ``failed``; with it, the candidate taken
+    (returned with its evidence and that radius)."""
     frame, camera, rig, truth = _physical(seed, condition, index, name)
     res = detect_spots(frame.image_rgb, camera, rig)
     got = {s.laser: s for s in res.spots}
@@ -186,7 +187,8 @@ def _searched_with_the_other_spots_radius(seed: int, condition: str, index: int,
     others = float(np.median([c.radius_px for c in res.candidates
                               if c.laser is not None and c.laser != name]))
     guided = GuidedOptions(radius_px=default_floor_radius_px(camera.width, camera.height))
-    alone = search_near(frame.image_rgb, camera, rig, name, truth, DetectionOptions(), guided)
+    alone = search_near(frame.image_rgb, camera, rig, name, truth,
+                        DetectionOptions(peak_when_refinement_fails=False), guided)
     assert alone[0] is None and failed in alone[2]
     helped, score, _ = search_near(frame.image_rgb, camera, rig, name, truth,
                                    DetectionOptions(), guided, PLACE, others)
@@ -206,6 +208,15 @@ def test_a_spot_on_bright_water_is_refined_at_the_other_spots_radius(index: int,
         0, "green_water", index, name, "sub-pixel refinement failed")
     assert PLACE in next(c.reason for c in res.candidates if c.laser == name)
     assert helped.radius_px == others
+    # frame 15's maximum, centred at its peak, is taken alone too (0.28 px off); 17's is not
+    frame, camera, rig, truth = _physical(0, "green_water", index, name)
+    guided = GuidedOptions(radius_px=default_floor_radius_px(camera.width, camera.height))
+    at_peak = search_near(frame.image_rgb, camera, rig, name, truth, DetectionOptions(), guided)
+    if index == 15:
+        assert at_peak[0] is not None and at_peak[0].at_peak
+        assert math.dist((at_peak[0].x, at_peak[0].y), truth) < 0.5
+    else:
+        assert at_peak[0] is None
 
 
 @pytest.mark.parametrize(("seed", "condition", "index", "name", "failed"), [
