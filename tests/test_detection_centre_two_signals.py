@@ -173,11 +173,12 @@ def _detect(condition: str, index: int, two_signals: bool,
     frame = _render(condition, index, size)
     rig = rig_from_dict(tomllib.loads(frame.rig_toml))
     # the narrower windows (centre.narrow_window_centre), the brightness maximum's sub-pixel
-    # peak (wandered.back_to_peak) and, unless asked, the crosstalk centre
-    # (centre.crosstalk_centre) off: these frames test the two signals and the clipped
-    # pixels alone; the σ term of the rule that took a spot is off too (the blob's σ is tested)
+    # peak (wandered.back_to_peak; candidates._at_peak, whose spots skip the centring steps)
+    # and, unless asked, the crosstalk centre (centre.crosstalk_centre) off: these frames test
+    # the two signals and the clipped pixels alone; the σ term of the rule that took a spot is
+    # off too (the blob's σ is tested)
     opts = DetectionOptions(two_signal_centre=two_signals, narrow_window_ratio=0.0,
-                            peak_apart_px=0.0,
+                            peak_apart_px=0.0, peak_when_refinement_fails=False,
                             crosstalk_max_noise_px=DetectionOptions().crosstalk_max_noise_px
                             if crosstalk else 0.0, sigma_floor_choice=0.0,
                             sigma_second_look_choice=0.0)
