@@ -3,6 +3,7 @@ on planes), and the search there (a spot the band's blobs hide is found, a reaso
 
 from __future__ import annotations
 
+import functools
 import math
 import tomllib
 from dataclasses import replace
@@ -161,6 +162,7 @@ def test_the_floor_is_searched_again_with_the_spots_the_second_look_took() -> No
     assert {s.laser for s in off.spots} == {"L1", "L2"} and PLACE not in off.missing["L4"]
 
 
+@functools.lru_cache(maxsize=2)  # a test reads its frame more than once
 def _physical(seed: int, condition: str, index: int, name: str
               ) -> tuple[Frame, Camera, Rig, tuple[float, float]]:
     """A 1920 × 1080 frame of the physical benchmark (as its ``seed``), its camera and rig, and
